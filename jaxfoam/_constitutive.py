@@ -1,0 +1,218 @@
+"""Herschel-Bulkley elasto-viscoplasticity of Yue et al. 2015 (eq. 1-2, 11-16).
+
+Every function here works on one material point or on a batch: leading axes broadcast.
+Tensors: `f`, `F` are (..., d, d) with d = 2 (plane strain) or 3; `bbar_e` is always (..., 3, 3).
+"""
+from __future__ import annotations
+
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+
+from ._params import Params
+
+SQRT_2_3 = math.sqrt(2.0 / 3.0)
+# Newton iterations of the return map in log-rate space. From the upper bracket the iteration is
+# monotone and quadratic (g is convex with slope in [min(m,1), max(m,1)]); 12 reach float64
+# round-off for m in [0.1, 3] and eta in [0, 1e4] (tests/test_return_map.py measures it).
+RETURN_MAP_NEWTON_ITERS = 12
+
+
+def det(a: jax.Array) -> jax.Array:
+    """Determinant of (..., d, d), d in {2, 3}, by explicit components (fast elementwise code)."""
+    d = a.shape[-1]
+    if d == 2:
+        return a[..., 0, 0] * a[..., 1, 1] - a[..., 0, 1] * a[..., 1, 0]
+    if d == 3:
+        return (a[..., 0, 0] * (a[..., 1, 1] * a[..., 2, 2] - a[..., 1, 2] * a[..., 2, 1])
+                - a[..., 0, 1] * (a[..., 1, 0] * a[..., 2, 2] - a[..., 1, 2] * a[..., 2, 0])
+                + a[..., 0, 2] * (a[..., 1, 0] * a[..., 2, 1] - a[..., 1, 1] * a[..., 2, 0]))
+    raise ValueError(f"dimension must be 2 or 3, got {d}")
+
+
+def embed3(f: jax.Array) -> jax.Array:
+    """Embed a (..., d, d) tensor as (..., 3, 3) with identity in the missing (plane-strain) block."""
+    d = f.shape[-1]
+    if d == 3:
+        return f
+    out = jnp.broadcast_to(jnp.eye(3, dtype=f.dtype), f.shape[:-2] + (3, 3))
+    return out.at[..., :d, :d].set(f)
+
+
+def matmul(a, b):
+    """Batched small matrix product as broadcast-multiply-sum over the shared axis."""
+    return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
+
+
+def _eye3(a):
+    """The 3x3 identity with the batch rank of a (..., 3, 3) (explicit for strict rank promotion)."""
+    return jnp.eye(3, dtype=a.dtype).reshape((1,) * (a.ndim - 2) + (3, 3))
+
+
+def dev(a: jax.Array) -> jax.Array:
+    """Deviatoric part x - tr(x)/3 I of a (..., 3, 3) tensor."""
+    tr = jnp.trace(a, axis1=-2, axis2=-1)
+    return a - (tr / 3.0)[..., None, None] * _eye3(a)
+
+
+def _safe_norm(a: jax.Array) -> jax.Array:
+    """Frobenius norm over the last two axes with a finite gradient at 0 (double where)."""
+    sq = jnp.sum(a * a, axis=(-2, -1))
+    pos = sq > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)
+
+
+def kirchhoff_stress(F: jax.Array, bbar_e: jax.Array, params: Params) -> jax.Array:
+    """Kirchhoff stress tau = kappa/2 (J^2 - 1) I + mu dev(bbar_e), Pa, as (..., d, d) (eq. 2).
+
+    J = det F. In 2D this is the in-plane block of the 3x3 plane-strain stress.
+    """
+    d = F.shape[-1]
+    J = det(F)
+    tau = params.mu * dev(bbar_e) + (0.5 * params.kappa * (J * J - 1.0))[..., None, None] * _eye3(bbar_e)
+    return tau[..., :d, :d]
+
+
+def energy_density(F: jax.Array, bbar_e: jax.Array, params: Params) -> jax.Array:
+    """Stored energy per reference volume W = kappa/2 ((J^2-1)/2 - ln J) + mu/2 (tr bbar_e - 3), J/m^3 (eq. 1)."""
+    J = det(F)
+    Js = jnp.where(J > 0, J, 1.0)
+    wv = jnp.where(J > 0, 0.5 * params.kappa * (0.5 * (Js * Js - 1.0) - jnp.log(Js)), jnp.inf)
+    return wv + 0.5 * params.mu * (jnp.trace(bbar_e, axis1=-2, axis2=-1) - 3.0)
+
+
+def deviatoric_stress_norm(bbar_e: jax.Array, params: Params) -> jax.Array:
+    """s = mu ||dev(bbar_e)||_F, Pa: the quantity compared with sqrt(2/3) sigma_y (eq. 3)."""
+    return params.mu * _safe_norm(dev(bbar_e))
+
+
+# ----------------------------------------------------------------------------------------------
+# The scalar Herschel-Bulkley equation  h(gamma) = eta gamma^m + a gamma - b = 0.
+# ----------------------------------------------------------------------------------------------
+
+def _solve_rate(a, b, eta, m):
+    """Root of h for b > 0 by Newton on z = ln gamma, started from the upper bracket.
+
+    g(z) = ln(eta e^{m z} + a e^z) - ln b is convex and increasing with slope between m and 1,
+    and the upper bound z0 = min(ln(b/a), ln(b/eta)/m) has g(z0) >= 0, so the iterates
+    decrease monotonically to the root without overshoot. Closed forms (eta = 0, m = 1) are exact
+    after one step.
+    """
+    la = jnp.log(a)
+    lb = jnp.log(b)
+    le = jnp.log(jnp.where(eta > 0, eta, 1.0))
+    has_eta = eta > 0
+    z_visc = jnp.where(has_eta, (lb - le) / m, jnp.inf)
+    z = jnp.minimum(lb - la, z_visc)
+
+    def newton(_, z):
+        p = jnp.where(has_eta, le + m * z, -jnp.inf)
+        q = la + z
+        lse = jnp.logaddexp(p, q)
+        w = jnp.exp(p - lse)  # share of the viscous term, in [0, 1]
+        slope = w * m + (1.0 - w)
+        z_new = z - (lse - lb) / slope
+        return jnp.minimum(z_new, z)  # monotone from above; guards round-off wobble
+
+    z = jax.lax.fori_loop(0, RETURN_MAP_NEWTON_ITERS, newton, z, unroll=True)
+    return jnp.exp(z)
+
+
+@jax.custom_jvp
+def hb_rate(a, b, eta, m):
+    """Plastic rate gamma (1/s) solving eta gamma^m + a gamma = b (model.md, the gamma form of eq. 14).
+
+    Args (broadcastable arrays):
+      a: 2 mubar dt, Pa s (> 0).
+      b: yield excess s_pre - sqrt(2/3) sigma_y, Pa; gamma = 0 where b <= 0 (elastic).
+      eta: consistency, Pa s^m (>= 0).  m: exponent (> 0).
+    Derivatives come from the implicit function theorem (see `_hb_rate_jvp`); the iterations are
+    never differentiated.
+    """
+    yielding = b > 0
+    b_safe = jnp.where(yielding, b, 1.0)
+    a_safe = jnp.where(a > 0, a, 1.0)
+    gamma = _solve_rate(a_safe, b_safe, eta, m)
+    return jnp.where(yielding, gamma, 0.0)
+
+
+@hb_rate.defjvp
+def _hb_rate_jvp(primals, tangents):
+    """Implicit-function derivative of gamma.
+
+    With P = eta gamma^m and Q = a gamma (P + Q = b), differentiating h = 0 gives
+      dgamma = -gamma (gamma^m deta + P ln(gamma) dm + gamma da - db) / (m P + Q).
+    m P + Q >= min(m, 1) b > 0 wherever b > 0, so this is finite for every eta >= 0 and m > 0,
+    including gamma -> 0+ with m < 1 where gamma^(m-1) blows up in the textbook form. In the elastic
+    regime (b <= 0) gamma = 0 and all derivatives are 0: the derivative at the yield surface is the
+    one-sided limit from the elastic side (d gamma / d b jumps there to 0+ for m < 1, 1/(eta + a)
+    for m = 1, 1/a for m > 1 on the plastic side).
+    """
+    a, b, eta, m = primals
+    da, db, deta, dm = tangents
+    gamma = hb_rate(a, b, eta, m)
+    yielding = b > 0
+    g = jnp.where(yielding, gamma, 1.0)
+    gm = jnp.exp(m * jnp.log(g))  # gamma^m, safe: g > 0
+    P = eta * gm
+    Q = a * g
+    denom = m * P + Q
+    denom = jnp.where(yielding & (denom > 0), denom, 1.0)
+    num = gm * deta + P * jnp.log(g) * dm + g * da - db
+    dgamma = jnp.where(yielding, -g * num / denom, 0.0)
+    return gamma, dgamma
+
+
+def return_map(bbar_e: jax.Array, f: jax.Array, params: Params, dt) -> tuple[jax.Array, jax.Array]:
+    """One plastic step of a material point: elastic predictor, yield test, HB return map (eq. 12-16).
+
+    Args:
+      bbar_e: (..., 3, 3) volume-preserving elastic left Cauchy-Green tensor at step n (det 1).
+      f: (..., d, d) incremental deformation gradient I + dt grad v of the step, d in {2, 3}
+         (2D is plane strain: f_zz = 1).
+      params: material (mu Pa, sigma_y Pa, eta Pa s^m, m).
+      dt: time step, s.
+    Returns:
+      (bbar_e_new (..., 3, 3) with det 1, s_new (...) deviatoric stress magnitude mu ||dev bbar_e_new||, Pa).
+    Elastic states (Phi(s_pre) <= 0) come back as the elastic predictor, bit for bit.
+    """
+    bbar_new, s_new, _ = _return_map_with_rate(bbar_e, f, params, dt)
+    return bbar_new, s_new
+
+
+def _return_map_with_rate(bbar_e, f, params, dt):
+    f3 = embed3(f)
+    detf = det(f3)
+    fbar = f3 * (detf ** (-1.0 / 3.0))[..., None, None]
+    bpre = matmul(matmul(fbar, bbar_e), jnp.swapaxes(fbar, -1, -2))
+    dev_pre = dev(bpre)
+    tr3 = jnp.trace(bpre, axis1=-2, axis2=-1) / 3.0
+    s_pre = params.mu * _safe_norm(dev_pre)
+    s_y = SQRT_2_3 * params.sigma_y
+    b = s_pre - s_y
+    yielding = b > 0
+    mubar = params.mu * tr3
+    gamma = hb_rate(2.0 * mubar * dt, b, params.eta, params.m)
+    s_new = jnp.where(yielding, s_pre - 2.0 * mubar * dt * gamma, s_pre)
+    ratio = s_new / jnp.where(yielding, s_pre, 1.0)
+    b_ret = ratio[..., None, None] * dev_pre + tr3[..., None, None] * _eye3(bpre)
+    b_ret = b_ret * (det(b_ret) ** (-1.0 / 3.0))[..., None, None]  # renormalize to det 1 (eq. 16)
+    bbar_new = jnp.where(yielding[..., None, None], b_ret, bpre)
+    s_out = jnp.where(yielding, params.mu * _safe_norm(dev(bbar_new)), s_pre)
+    return bbar_new, s_out, gamma
+
+
+def hb_steady_shear_stress(shear_rate, params: Params):
+    """Steady simple-shear stress (Pa) this model predicts at a shear rate (1/s), rigid-elastic limit.
+
+    In simple shear with rate gdot, the plastic flow must carry the whole deformation: the
+    deviatoric rate of bbar_e, |d dev(bbar)/dt| ~ sqrt(2) gdot (tr bbar/3 ~ 1), balances
+    2/3 tr(bbar) gamma = 2 gamma, so gamma = gdot / sqrt(2). The stress norm is
+    s = s_Y + eta gamma^m, and the shear component tau_xy = s / sqrt(2). Hence
+      tau_xy = sigma_y / sqrt(3) + eta (gdot / sqrt 2)^m / sqrt(2).
+    """
+    gamma = shear_rate / math.sqrt(2.0)
+    s = SQRT_2_3 * params.sigma_y + params.eta * gamma ** params.m
+    return s / math.sqrt(2.0)

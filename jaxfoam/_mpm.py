@@ -1,0 +1,244 @@
+"""One MLS-MPM substep in named stages: p2g -> grid_update -> g2p -> constitutive.
+
+Dimension-generic: d = x.shape[-1]; the 3^d stencil is unrolled at trace time as elementwise
+(N,)-array operations (XLA:CPU is slow at reductions over tiny axes), and all stencil offsets go
+through one fused scatter-add and one gather.
+"""
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._constitutive import _return_map_with_rate, det, kirchhoff_stress
+from ._params import Params
+from ._scene import Scene
+from ._state import State
+
+# Grid nodes beyond the domain on each side: the quadratic stencil reaches 1.5 cells past a
+# particle, and the slip walls live on the domain boundary, so 3 cells keep every index in range.
+GRID_PAD = 3
+
+
+@dataclasses.dataclass(frozen=True)
+class Grid:
+    """Static background grid. origin (d,) m is node (0, ..., 0); dx m; shape nodes per axis."""
+
+    origin: tuple
+    dx: float
+    shape: tuple
+
+    @property
+    def dim(self) -> int:
+        return len(self.shape)
+
+    @property
+    def num_nodes(self) -> int:
+        return int(np.prod(self.shape))
+
+    def node_positions(self, dtype) -> jax.Array:
+        """(G, d) node positions, m, in the flattened (row-major) order of the grid arrays."""
+        axes = [self.origin[k] + self.dx * np.arange(n) for k, n in enumerate(self.shape)]
+        pos = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, self.dim)
+        return jnp.asarray(pos, dtype)
+
+
+def make_grid(scene: Scene, dx: float) -> Grid:
+    """The grid covering the scene's domain with GRID_PAD extra cells on every side."""
+    lo = np.asarray(scene.domain_min)
+    hi = np.asarray(scene.domain_max)
+    n = np.ceil((hi - lo) / dx).astype(int) + 1 + 2 * GRID_PAD
+    return Grid(origin=tuple((lo - GRID_PAD * dx).tolist()), dx=float(dx), shape=tuple(int(k) for k in n))
+
+
+@jax.custom_jvp
+def safe_div(num, den):
+    """num / den where den > 0, else 0 (grid momentum / grid mass).
+
+    Its derivative (dnum - q dden) / den never squares den: in float32 the textbook derivative
+    d(1/den) = -dden/den^2 underflows for tiny stencil-edge masses and poisons reverse mode.
+    """
+    pos = den > 0
+    return jnp.where(pos, num / jnp.where(pos, den, 1.0), 0.0)
+
+
+@safe_div.defjvp
+def _safe_div_jvp(primals, tangents):
+    num, den = primals
+    dnum, dden = tangents
+    q = safe_div(num, den)
+    pos = den > 0
+    return q, jnp.where(pos, (dnum - q * dden) / jnp.where(pos, den, 1.0), 0.0)
+
+
+def _stencil(x, grid: Grid):
+    """Quadratic B-spline weights: base (N, d) int, fx (N, d), w list of 3 arrays (N, d)."""
+    inv_dx = 1.0 / grid.dx
+    origin = jnp.asarray(grid.origin, x.dtype)
+    xg = (x - origin[None, :]) * inv_dx
+    base = jnp.floor(xg - 0.5)
+    fx = xg - base
+    w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
+    return base.astype(jnp.int32), fx, w
+
+
+def _offsets(d):
+    return list(itertools.product(range(3), repeat=d))
+
+
+def _flat_index(base, offset, grid: Grid):
+    strides = np.cumprod((grid.shape[1:] + (1,))[::-1])[::-1]
+    idx = 0
+    for k in range(grid.dim):
+        idx = idx + (base[:, k] + offset[k]) * int(strides[k])
+    return idx
+
+
+def p2g(state: State, params: Params, grid: Grid, dt) -> tuple[jax.Array, jax.Array]:
+    """Particle to grid: scatter mass and momentum (including the MLS-MPM stress impulse).
+
+    Returns (grid momentum (G, d) kg m/s, grid mass (G,) kg). Inactive particles carry zero mass
+    and volume and contribute nothing.
+    """
+    x, d = state.x, state.dim
+    base, fx, w = _stencil(x, grid)
+    act = state.active.astype(x.dtype)
+    mass = state.mass * act
+    vol = state.vol0 * act
+    tau = kirchhoff_stress(state.F, state.bbar_e, params)
+    # MLS-MPM: the force on node i is -sum_p V0_p tau_p grad w_ip, with grad w = 4/dx^2 w (x_i - x_p).
+    affine = (-dt * 4.0 / grid.dx ** 2) * vol[:, None, None] * tau + mass[:, None, None] * state.C
+    mv = mass[:, None] * state.v
+    idx, vals = [], []
+    for off in _offsets(d):
+        weight = w[off[0]][:, 0]
+        for k in range(1, d):
+            weight = weight * w[off[k]][:, k]
+        dpos = (jnp.asarray(off, x.dtype)[None, :] - fx) * grid.dx
+        mom = mv + sum(affine[:, :, k] * dpos[:, k:k + 1] for k in range(d))
+        vals.append(jnp.concatenate([weight[:, None] * mom, (weight * mass)[:, None]], axis=1))
+        idx.append(_flat_index(base, off, grid))
+    grid_mv = jnp.zeros((grid.num_nodes, d + 1), x.dtype).at[jnp.concatenate(idx)].add(
+        jnp.concatenate(vals), mode="drop")
+    return grid_mv[:, :d], grid_mv[:, d]
+
+
+def _safe_norm_vec(v):
+    sq = jnp.sum(v * v, axis=-1)
+    pos = sq > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)
+
+
+def apply_colliders(v, node_x, scene: Scene, t) -> jax.Array:
+    """Boundary conditions on grid velocities v (G, d) m/s at nodes node_x (G, d) m, time t s.
+
+    - plates: nodes inside a plate take its velocity (sticky) or lose the approaching normal
+      component relative to it (slip);
+    - floor (y <= floor_y): no slip when sticky, else Coulomb friction with the scene coefficient
+      on approaching nodes;
+    - domain walls: slip (outward normal velocity removed) on nodes on or beyond the boundary.
+    """
+    d = v.shape[-1]
+    for plate in scene.plates:
+        c = plate.position(t)
+        vp = plate.velocity(t)
+        rel = node_x - c[None, :]
+        inside = jnp.all(jnp.abs(rel) <= plate.half_size[None, :], axis=-1)
+        if plate.sticky:
+            v = jnp.where(inside[:, None], vp[None, :], v)
+        else:
+            gap = plate.half_size[None, :] - jnp.abs(rel)  # distance to each face pair
+            axis = jnp.argmin(gap, axis=-1)
+            normal = jax.nn.one_hot(axis, d, dtype=v.dtype) * jnp.sign(
+                jnp.take_along_axis(rel, axis[:, None], -1))
+            vrel = v - vp[None, :]
+            vn = jnp.sum(vrel * normal, -1)
+            vrel = vrel - jnp.minimum(vn, 0.0)[:, None] * normal
+            v = jnp.where(inside[:, None], vp[None, :] + vrel, v)
+    if scene.floor_y is not None:
+        below = node_x[:, 1] <= scene.floor_y
+        if scene.floor_sticky:
+            v = jnp.where(below[:, None], 0.0, v)
+        else:
+            vn = v[:, 1]
+            approaching = below & (vn < 0)
+            vt = v.at[:, 1].set(0.0)
+            speed = _safe_norm_vec(vt)
+            new_speed = jnp.maximum(speed + scene.floor_friction * vn, 0.0)
+            scale = jnp.where(speed > 0, new_speed / jnp.where(speed > 0, speed, 1.0), 0.0)
+            v = jnp.where(approaching[:, None], vt * scale[:, None], v)
+    lo = jnp.asarray(scene.domain_min, v.dtype)
+    hi = jnp.asarray(scene.domain_max, v.dtype)
+    v = jnp.where(node_x <= lo[None, :], jnp.maximum(v, 0.0), v)
+    v = jnp.where(node_x >= hi[None, :], jnp.minimum(v, 0.0), v)
+    return v
+
+
+def grid_update(grid_mv, grid_m, scene: Scene, grid: Grid, t, dt) -> jax.Array:
+    """Grid velocities (G, d) m/s at the end of the substep: momentum / mass, gravity, colliders."""
+    v = safe_div(grid_mv, grid_m[:, None])
+    v = v + jnp.where(grid_m[:, None] > 0, dt * scene.gravity.astype(v.dtype)[None, :], 0.0)
+    return apply_colliders(v, grid.node_positions(v.dtype), scene, t + dt)
+
+
+def g2p(state: State, grid_v, grid: Grid) -> tuple[jax.Array, jax.Array]:
+    """Grid to particle: APIC velocity (N, d) m/s and affine matrix / velocity gradient C (N, d, d) 1/s."""
+    x, d = state.x, state.dim
+    base, fx, w = _stencil(x, grid)
+    offs = _offsets(d)
+    idx = jnp.concatenate([_flat_index(base, off, grid) for off in offs])
+    gathered = grid_v.at[idx].get(mode="fill", fill_value=0.0).reshape(len(offs), x.shape[0], d)
+    v = jnp.zeros_like(x)
+    C = jnp.zeros(x.shape + (d,), x.dtype)
+    for o, off in enumerate(offs):
+        weight = w[off[0]][:, 0]
+        for k in range(1, d):
+            weight = weight * w[off[k]][:, k]
+        vi = weight[:, None] * gathered[o]
+        dpos = (jnp.asarray(off, x.dtype)[None, :] - fx) * grid.dx
+        v = v + vi
+        C = C + vi[:, :, None] * dpos[:, None, :]
+    return v, C * (4.0 / grid.dx ** 2)
+
+
+def constitutive(state: State, v, C, params: Params, grid: Grid, dt) -> State:
+    """Advance F and bbar_e with f = I + dt C (eq. 11-16), advect positions, keep them on the grid."""
+    d = state.dim
+    f = jnp.eye(d, dtype=C.dtype)[None] + dt * C
+    F = jnp.sum(f[:, :, :, None] * state.F[:, None, :, :], axis=2)
+    bbar, _, gamma = _return_map_with_rate(state.bbar_e, f, params, dt)
+    # Particles never leave the stencil-safe region (the walls stop them long before).
+    lo = jnp.asarray(grid.origin, C.dtype) + grid.dx
+    hi = jnp.asarray(grid.origin, C.dtype) + grid.dx * (jnp.asarray(grid.shape, C.dtype) - 2.0)
+    x = jnp.clip(state.x + dt * v, lo[None, :], hi[None, :])
+    keep = state.active
+    return state.replace(
+        x=jnp.where(keep[:, None], x, state.x), v=jnp.where(keep[:, None], v, 0.0),
+        C=jnp.where(keep[:, None, None], C, 0.0), F=jnp.where(keep[:, None, None], F, state.F),
+        bbar_e=jnp.where(keep[:, None, None], bbar, state.bbar_e),
+        gamma_dot=jnp.where(keep, gamma, 0.0), t=state.t + dt)
+
+
+def substep(state: State, params: Params, scene: Scene, grid: Grid, dt) -> State:
+    """One explicit MLS-MPM step of length dt (s): the chain of named stages."""
+    with jax.named_scope("p2g"):
+        grid_mv, grid_m = p2g(state, params, grid, dt)
+    with jax.named_scope("grid_update"):
+        grid_v = grid_update(grid_mv, grid_m, scene, grid, state.t, dt)
+    with jax.named_scope("g2p"):
+        v, C = g2p(state, grid_v, grid)
+    with jax.named_scope("constitutive"):
+        return constitutive(state, v, C, params, grid, dt)
+
+
+def make_step(scene: Scene, grid: Grid, dt: float):
+    """Bind the static configuration once: returns the pure `step(state, params) -> state`."""
+
+    def step(state: State, params: Params) -> State:
+        return substep(state, params, scene, grid, dt)
+
+    return step
