@@ -1,0 +1,222 @@
+"""Synthetic silhouette data: simulate a scene and render it the way a tracked video looks.
+
+`synthesize` runs `jaxfoam.simulate` at a given dx, then for every frame:
+
+1. renders a hard silhouette: particles are splatted with a fine kernel (width 1.5 particle spacings)
+   on a supersampled pixel grid, the coverage is thresholded at 1/2, and a pixel is foam when at
+   least half of its sub-pixels are (what a tracker that thresholds a sharp image reports);
+2. hides the plates: pixels under a plate's footprint at that time (`Plate.position(t)`) get mask 0
+   and weight 0 (occluded: a fitter must ignore them);
+3. adds boundary noise: each pixel on either side of the foam boundary flips with probability `noise`;
+4. drops frames: a fraction of the frames after the first is removed at random (times with gaps).
+
+The parameters that made the data are written to /truth (for recovery studies; fitters never read
+it). The command line is `jaxfoam synth SCENE.json --params mu=..,sigma_y=..,eta=..,m=.. --out data.h5`.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._params import FIT_FIELDS, Params
+from ._scene import DEFAULT_PPC, Scene, load_scene
+from ._simulate import Simulator
+from .io import Camera, Silhouettes, camera_covering, plate_footprint, validate, write_silhouettes
+from .silhouette import HALF_DENSITY, make_render_config, particle_spacing, splat_density
+
+# Sub-pixels per particle spacing of the supersampled rendering: 2 resolves the kernel's edge well
+# enough that the pixel coverage is accurate to ~1/4 pixel.
+SUBPIXELS_PER_SPACING = 2.0
+# Largest supersampling factor per axis (memory: (H ss) x (W ss) per frame).
+MAX_SUPERSAMPLE = 8
+# Kernel width of the "true" silhouette, particle spacings: the smallest width that closes the gaps
+# between jittered particles (see KERNEL_SPACINGS in silhouette.py).
+FINE_KERNEL_SPACINGS = 1.5
+_splat = jax.jit(splat_density, static_argnames=("cfg",))
+
+# Default resolution when none is given: this many grid cells across the domain's largest extent.
+DEFAULT_CELLS = 64
+
+
+def parse_params(text: str) -> dict:
+    """Parse 'mu=100,sigma_y=30,eta=5,m=0.6' into a dict of floats (all four required)."""
+    out = {}
+    for item in filter(None, (s.strip() for s in str(text).split(","))):
+        if "=" not in item:
+            raise ValueError(f"--params: expected name=value pairs separated by commas, got {item!r}")
+        k, v = (s.strip() for s in item.split("=", 1))
+        if k in ("kappa", "rho", "density"):
+            raise ValueError(f"--params: {k} is a known input of the scene (density, kappa), not a parameter here")
+        if k not in FIT_FIELDS:
+            raise ValueError(f"--params: unknown parameter {k!r}; expected {list(FIT_FIELDS)}")
+        try:
+            out[k] = float(v)
+        except ValueError as exc:
+            raise ValueError(f"--params: {k} must be a number, got {v!r}") from exc
+    missing = [k for k in FIT_FIELDS if k not in out]
+    if missing:
+        raise ValueError(f"--params: missing {missing} (give all of {list(FIT_FIELDS)})")
+    return out
+
+
+def hard_masks(xs, active, camera: Camera, shape, dx: float, ppc: int, dim: int) -> np.ndarray:
+    """Binary silhouettes (T, H, W) uint8 of particle frames xs (T, N, d) m, active (T, N) bool.
+
+    The coverage of a fine kernel (FINE_KERNEL_SPACINGS particle spacings) is thresholded at 1/2 on
+    a supersampled grid; a pixel is foam when at least half of its sub-pixels are.
+    """
+    H, W = shape
+    s = particle_spacing(dx, ppc, dim)
+    ss = int(min(MAX_SUPERSAMPLE, max(1, math.ceil(camera.pixel_size * SUBPIXELS_PER_SPACING / s))))
+    fine = Camera(pixel_size=camera.pixel_size / ss, origin=camera.origin)
+    cfg = make_render_config(fine, (H * ss, W * ss), dx, ppc, dim, kernel_spacings=FINE_KERNEL_SPACINGS,
+                             kernel_pixels=1.0)
+    out = np.zeros((len(xs), H, W), np.uint8)
+    for t in range(len(xs)):
+        dens = np.asarray(_splat(jnp.asarray(xs[t]), jnp.asarray(active[t]), cfg))
+        cover = (dens >= HALF_DENSITY).reshape(H, ss, W, ss).mean(axis=(1, 3))
+        out[t] = cover >= 0.5
+    return out
+
+
+def boundary_pixels(mask: np.ndarray) -> np.ndarray:
+    """Pixels with a 4-neighbour of the other class (both sides of the boundary): bool (H, W)."""
+    m = np.asarray(mask, bool)
+    diff = np.zeros_like(m)
+    diff[1:, :] |= m[1:, :] != m[:-1, :]
+    diff[:-1, :] |= m[1:, :] != m[:-1, :]
+    diff[:, 1:] |= m[:, 1:] != m[:, :-1]
+    diff[:, :-1] |= m[:, 1:] != m[:, :-1]
+    return diff
+
+
+def synthesize(scene: Scene | dict | str, params: dict, dx: float | None = None, ppc: int | None = None,
+               frames: int = 16, duration: float = 1.0, pixel_size: float | None = None, noise: float = 0.05,
+               drop_frames: float = 0.0, seed: int = 0, dtype=jnp.float64, first_mask: bool = False,
+               progress=None) -> Silhouettes:
+    """Simulate a scene and render it as tracked-video silhouettes.
+
+    Args:
+      scene: the scene (parsed, dict, JSON text or path); its initial_shape must be box or ellipse.
+      params: {mu (Pa), sigma_y (Pa), eta (Pa s^m), m}; kappa and density come from the scene.
+      dx: simulation grid spacing, m (default: the domain's largest extent / DEFAULT_CELLS).
+      ppc: particles per cell (default 4 in 2D, 8 in 3D).
+      frames: number of frames before dropping, evenly spaced on [0, duration] s (frame 0 is t = 0).
+      pixel_size: m per pixel (default dx / 2); the camera covers the domain's (x, y) extent.
+      noise: probability in [0, 1] that a pixel on either side of the boundary flips.
+      drop_frames: fraction in [0, 1) of the frames after the first removed at random.
+      seed: seed of particle sampling, noise and dropped frames.
+      first_mask: record the scene with initial_shape 'first_mask' (a fit then starts from the first,
+        noisy, mask as it would with real data) instead of the primitive used to simulate.
+      progress: optional callable(str) for status lines.
+    Returns the validated `Silhouettes` (write it with `.write(path)`).
+    """
+    say = progress or (lambda msg: None)
+    if not isinstance(scene, Scene):
+        scene = load_scene(scene)
+    if scene.initial_shape["type"] == "first_mask":
+        raise ValueError("scene.initial_shape: synth needs an explicit shape ('box' or 'ellipse'), not 'first_mask'")
+    if isinstance(params, str):
+        params = parse_params(params)
+    p = Params(mu=params["mu"], kappa=scene.kappa, sigma_y=params["sigma_y"], eta=params["eta"], m=params["m"],
+               rho=scene.density).validate()
+    d = scene.dim
+    ppc = DEFAULT_PPC[d] if ppc is None else int(ppc)
+    extent = max(b - a for a, b in zip(scene.domain_min, scene.domain_max))
+    dx = extent / DEFAULT_CELLS if dx is None else float(dx)
+    pixel_size = dx / 2 if pixel_size is None else float(pixel_size)
+    if not (isinstance(frames, int) and frames >= 2):
+        raise ValueError(f"frames must be an integer >= 2, got {frames!r}")
+    if not (duration > 0 and math.isfinite(duration)):
+        raise ValueError(f"duration must be > 0 s, got {duration!r}")
+    if not 0.0 <= noise <= 1.0:
+        raise ValueError(f"noise must be a probability in [0, 1], got {noise}")
+    if not 0.0 <= drop_frames < 1.0:
+        raise ValueError(f"drop_frames must be a fraction in [0, 1), got {drop_frames}")
+    camera, shape = camera_covering(scene, pixel_size)
+    times = np.linspace(0.0, float(duration), frames)
+
+    t0 = time.perf_counter()
+    sim = Simulator(scene, times[1:], p, dx, ppc, dtype=dtype, seed=seed)
+    _, traj, health = sim.rollout(p)
+    sim.check(traj, health)
+    say(f"simulated {frames - 1} frames to t = {duration:g} s: {int(np.sum(sim.state0.active))} particles, "
+        f"{sim.substeps} substeps/frame of dt = {sim.dt:.3g} s, {time.perf_counter() - t0:.1f} s wall")
+    # Frame 0 (t = 0) is the initial state itself.
+    xs = np.concatenate([np.asarray(sim.state0.x)[None], np.asarray(traj["x"])], axis=0)
+    act = np.concatenate([np.asarray(sim.state0.active)[None], np.asarray(traj["active"])], axis=0)
+
+    masks = hard_masks(xs, act, camera, shape, dx, ppc, d)
+    rng = np.random.default_rng(seed + 1)
+    weights = np.ones(masks.shape, np.float32)
+    for t in range(frames):
+        if noise > 0:
+            flip = boundary_pixels(masks[t]) & (rng.random(shape) < noise)
+            masks[t] ^= flip.astype(np.uint8)
+        plate = plate_footprint(scene, float(times[t]), camera, shape)
+        masks[t][plate] = 0
+        weights[t][plate] = 0.0
+    keep = np.ones(frames, bool)
+    n_drop = int(round(drop_frames * (frames - 1)))
+    if n_drop:
+        keep[1 + rng.choice(frames - 1, size=n_drop, replace=False)] = False
+
+    spec = scene.spec
+    if first_mask:
+        spec = dict(spec, initial_shape={"type": "first_mask"})
+    source = json.dumps(dict(generator="jaxfoam synth", dx=dx, ppc=ppc, pixel_size=pixel_size, noise=noise,
+                             drop_frames=drop_frames, frames=frames, duration=duration, seed=seed,
+                             dt=sim.dt, substeps=sim.substeps, dtype=str(jnp.dtype(dtype)),
+                             simulated_initial_shape=scene.initial_shape))
+    truth = dict(params, kappa=scene.kappa, rho=scene.density)
+    return validate(masks[keep], times[keep], camera, spec, weights=weights[keep], source=source, truth=truth)
+
+
+# ----------------------------------------------------------------------------------------------
+# Command line
+# ----------------------------------------------------------------------------------------------
+
+def add_synth_parser(subparsers) -> argparse.ArgumentParser:
+    """Add the `synth` subcommand to an argparse subparsers object (runs via args.func(args))."""
+    ap = subparsers.add_parser(
+        "synth", help="simulate a scene and write synthetic silhouette data (with /truth)",
+        description="Simulate SCENE.json with the given parameters and render it as tracked-video silhouettes "
+                    "(hard masks, boundary pixel noise, dropped frames, plate pixels with weight 0).")
+    ap.add_argument("scene", help="scene JSON file (initial_shape box or ellipse)")
+    ap.add_argument("--params", required=True, help="mu=..,sigma_y=..,eta=..,m=.. (Pa, Pa, Pa s^m, -)")
+    ap.add_argument("--out", required=True, help="output silhouette file (.h5)")
+    ap.add_argument("--dx", type=float, default=None, help=f"grid spacing, m (default: domain extent / {DEFAULT_CELLS})")
+    ap.add_argument("--ppc", type=int, default=None, help="particles per cell (default 4 in 2D, 8 in 3D)")
+    ap.add_argument("--frames", type=int, default=16, help="frames on [0, duration], before dropping (default 16)")
+    ap.add_argument("--duration", type=float, default=1.0, help="simulated time, s (default 1)")
+    ap.add_argument("--pixel-size", type=float, default=None, help="m per pixel (default dx / 2)")
+    ap.add_argument("--noise", type=float, default=0.05,
+                    help="flip probability of pixels next to the foam boundary (default 0.05)")
+    ap.add_argument("--drop-frames", type=float, default=0.0,
+                    help="fraction of frames after the first removed at random (default 0)")
+    ap.add_argument("--seed", type=int, default=0, help="seed of sampling, noise and dropped frames")
+    ap.add_argument("--dtype", choices=("float32", "float64"), default="float64")
+    ap.add_argument("--first-mask", action="store_true",
+                    help="record initial_shape 'first_mask' in the file's scene (fits start from the first mask)")
+    ap.set_defaults(func=run_synth)
+    return ap
+
+
+def run_synth(args) -> int:
+    """Run the `synth` subcommand from parsed arguments; returns the exit status."""
+    data = synthesize(args.scene, parse_params(args.params), dx=args.dx, ppc=args.ppc, frames=args.frames,
+                      duration=args.duration, pixel_size=args.pixel_size, noise=args.noise,
+                      drop_frames=args.drop_frames, seed=args.seed,
+                      dtype=jnp.float32 if args.dtype == "float32" else jnp.float64,
+                      first_mask=args.first_mask, progress=print)
+    data.write(args.out)
+    T, H, W = data.shape
+    print(f"wrote {args.out}: {T} frames of {H}x{W} pixels ({data.camera.pixel_size:g} m/pixel), "
+          f"times {data.times[0]:g}..{data.times[-1]:g} s")
+    return 0
