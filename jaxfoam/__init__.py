@@ -14,6 +14,7 @@ from ._params import Params
 from ._scene import Plate, Scene, SceneError, init_state, load_scene, sample_particles
 from ._simulate import CFL, SimulationError, Simulator, Trajectory, simulate, stable_dt, wave_speed
 from ._state import State, make_state
+from ._trajectory import SavedTrajectory, TrajectoryError, load_trajectory, save_trajectory
 
 __version__ = "0.1.0"
 
@@ -22,5 +23,5 @@ __all__ = [
     "load_scene", "init_state", "make_state", "sample_particles", "make_grid", "make_step", "substep",
     "p2g", "grid_update", "g2p", "apply_colliders", "return_map", "hb_rate", "kirchhoff_stress",
     "energy_density", "deviatoric_stress_norm", "hb_steady_shear_stress", "det", "dev", "simulate",
-    "stable_dt", "wave_speed", "CFL",
+    "stable_dt", "wave_speed", "CFL", "save_trajectory", "load_trajectory", "SavedTrajectory", "TrajectoryError",
 ]
