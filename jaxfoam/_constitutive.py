@@ -12,13 +12,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import _tensor as T
 from ._params import Params
 
 SQRT_2_3 = math.sqrt(2.0 / 3.0)
 # Newton iterations of the return map in log-rate space. From the upper bracket the iteration is
-# monotone and quadratic (g is convex with slope in [min(m,1), max(m,1)]); 12 reach float64
+# monotone and quadratic (g is convex with slope in [min(m,1), max(m,1)]); 6 reach float64
 # round-off for m in [0.1, 3] and eta in [0, 1e4] (tests/test_return_map.py measures it).
-RETURN_MAP_NEWTON_ITERS = 12
+RETURN_MAP_NEWTON_ITERS = 6
 
 
 def det(a: jax.Array) -> jax.Array:
@@ -71,9 +72,13 @@ def kirchhoff_stress(F: jax.Array, bbar_e: jax.Array, params: Params) -> jax.Arr
     J = det F. In 2D this is the in-plane block of the 3x3 plane-strain stress.
     """
     d = F.shape[-1]
-    J = det(F)
-    tau = params.mu * dev(bbar_e) + (0.5 * params.kappa * (J * J - 1.0))[..., None, None] * _eye3(bbar_e)
-    return tau[..., :d, :d]
+    return T.array(_kirchhoff(T.comps(F), T.comps(bbar_e), params, d), F[..., 0, 0])
+
+
+def _kirchhoff(Fc, bc, params, d):
+    """Kirchhoff stress (d x d components) from components of F (d x d) and bbar_e (3 x 3)."""
+    J = T.det(Fc)
+    return T.block(T.add_diag(T.scale(T.dev(bc), params.mu), 0.5 * params.kappa * (J * J - 1.0)), d)
 
 
 def energy_density(F: jax.Array, bbar_e: jax.Array, params: Params) -> jax.Array:
@@ -154,7 +159,9 @@ def _hb_rate_jvp(primals, tangents):
     a, b, eta, m = primals
     da, db, deta, dm = tangents
     gamma = hb_rate(a, b, eta, m)
-    yielding = b > 0
+    # gamma > 0 too: just past yield with m < 1, gamma = (b/eta)^(1/m) can underflow to 0 (float32,
+    # m ~ 0.1), where P ln(gamma) would be 0 * -inf = NaN; the derivative of an underflowed 0 is 0.
+    yielding = (b > 0) & (gamma > 0)
     g = jnp.where(yielding, gamma, 1.0)
     gm = jnp.exp(m * jnp.log(g))  # gamma^m, safe: g > 0
     P = eta * gm
@@ -184,25 +191,43 @@ def return_map(bbar_e: jax.Array, f: jax.Array, params: Params, dt) -> tuple[jax
 
 
 def _return_map_with_rate(bbar_e, f, params, dt):
-    f3 = embed3(f)
-    detf = det(f3)
-    fbar = f3 * (detf ** (-1.0 / 3.0))[..., None, None]
-    bpre = matmul(matmul(fbar, bbar_e), jnp.swapaxes(fbar, -1, -2))
-    dev_pre = dev(bpre)
-    tr3 = jnp.trace(bpre, axis1=-2, axis2=-1) / 3.0
-    s_pre = params.mu * _safe_norm(dev_pre)
-    s_y = SQRT_2_3 * params.sigma_y
-    b = s_pre - s_y
+    """Array front end of `_return_map_components`: returns (bbar_new, s_new, gamma)."""
+    bc, s_new, gamma = _return_map_components(T.comps(bbar_e), T.comps(f, pad_to=3), params, dt)
+    return T.array(bc, bbar_e[..., 0, 0]), s_new, gamma
+
+
+def _return_map_components(bc, f3, params, dt):
+    """Return map on components: bbar_e (3x3) and f embedded as 3x3 -> (bbar_new, s_new, gamma)."""
+    detf = T.det(f3)
+    fbar = T.scale(f3, detf ** (-1.0 / 3.0))
+    bpre = T.matmul(T.matmul(fbar, bc), T.transpose(fbar))
+    tr3 = T.trace(bpre) / 3.0
+    dev_pre = T.add_diag(bpre, -tr3)
+    sq = T.frob_sq(dev_pre)
+    pos = sq > 0
+    s_pre = params.mu * jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)
+    b = s_pre - SQRT_2_3 * params.sigma_y
     yielding = b > 0
     mubar = params.mu * tr3
     gamma = hb_rate(2.0 * mubar * dt, b, params.eta, params.m)
-    s_new = jnp.where(yielding, s_pre - 2.0 * mubar * dt * gamma, s_pre)
-    ratio = s_new / jnp.where(yielding, s_pre, 1.0)
-    b_ret = ratio[..., None, None] * dev_pre + tr3[..., None, None] * _eye3(bpre)
-    b_ret = b_ret * (det(b_ret) ** (-1.0 / 3.0))[..., None, None]  # renormalize to det 1 (eq. 16)
-    bbar_new = jnp.where(yielding[..., None, None], b_ret, bpre)
-    s_out = jnp.where(yielding, params.mu * _safe_norm(dev(bbar_new)), s_pre)
-    return bbar_new, s_out, gamma
+    a_gamma = 2.0 * mubar * dt * gamma
+    # h = 0 gives s = s_pre - a gamma = s_Y + eta gamma^m: take the form with the smaller correction,
+    # so s keeps full relative precision also far below s_pre (eta -> 0, s_pre >> s_Y). visc is only
+    # formed for normal gamma (its reverse-mode 1/gamma stays finite); else the first form is used.
+    g_ok = gamma >= jnp.finfo(gamma.dtype).tiny
+    visc = jnp.where(g_ok, params.eta * jnp.exp(params.m * jnp.log(jnp.where(g_ok, gamma, 1.0))), jnp.inf)
+    s_plastic = jnp.where(a_gamma <= visc, s_pre - a_gamma, SQRT_2_3 * params.sigma_y + visc)
+    s_new = jnp.where(yielding, s_plastic, s_pre)
+    # 1 when elastic: the unused eq. 16 branch must stay finite (its det could be < 0), else its NaN
+    # leaks into reverse-mode gradients through the where below.
+    ratio = jnp.where(yielding, s_new / jnp.where(yielding, s_pre, 1.0), 1.0)
+    b_ret = T.add_diag(T.scale(dev_pre, ratio), tr3)
+    b_ret = T.scale(b_ret, T.det(b_ret) ** (-1.0 / 3.0))  # renormalize to det 1 (eq. 16)
+    bbar_new = tuple(tuple(jnp.where(yielding, r, p) for r, p in zip(rr, rp)) for rr, rp in zip(b_ret, bpre))
+    sq_new = T.frob_sq(T.dev(bbar_new))
+    pos_new = sq_new > 0
+    s_ret = params.mu * jnp.where(pos_new, jnp.sqrt(jnp.where(pos_new, sq_new, 1.0)), 0.0)
+    return bbar_new, jnp.where(yielding, s_ret, s_pre), gamma
 
 
 # Bisection steps of the steady-shear solves below: a bracket of width <= 2^60 (found by doubling)

@@ -14,7 +14,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._constitutive import _return_map_with_rate, det, kirchhoff_stress
+from . import _tensor as T
+from ._constitutive import _kirchhoff, _return_map_components
 from ._params import Params
 from ._scene import Scene
 from ._state import State
@@ -109,18 +110,19 @@ def p2g(state: State, params: Params, grid: Grid, dt) -> tuple[jax.Array, jax.Ar
     act = state.active.astype(x.dtype)
     mass = state.mass * act
     vol = state.vol0 * act
-    tau = kirchhoff_stress(state.F, state.bbar_e, params)
+    tau = _kirchhoff(T.comps(state.F), T.comps(state.bbar_e), params, d)
     # MLS-MPM: the force on node i is -sum_p V0_p tau_p grad w_ip, with grad w = 4/dx^2 w (x_i - x_p).
-    affine = (-dt * 4.0 / grid.dx ** 2) * vol[:, None, None] * tau + mass[:, None, None] * state.C
-    mv = mass[:, None] * state.v
+    k_stress = (-dt * 4.0 / grid.dx ** 2) * vol
+    affine = [[k_stress * tau[i][j] + mass * state.C[:, i, j] for j in range(d)] for i in range(d)]
+    mv = [mass * state.v[:, i] for i in range(d)]
     idx, vals = [], []
     for off in _offsets(d):
         weight = w[off[0]][:, 0]
         for k in range(1, d):
             weight = weight * w[off[k]][:, k]
-        dpos = (jnp.asarray(off, x.dtype)[None, :] - fx) * grid.dx
-        mom = mv + sum(affine[:, :, k] * dpos[:, k:k + 1] for k in range(d))
-        vals.append(jnp.concatenate([weight[:, None] * mom, (weight * mass)[:, None]], axis=1))
+        dpos = [(off[k] - fx[:, k]) * grid.dx for k in range(d)]
+        cols = [weight * (mv[i] + sum(affine[i][k] * dpos[k] for k in range(d))) for i in range(d)]
+        vals.append(jnp.stack(cols + [weight * mass], axis=1))
         idx.append(_flat_index(base, off, grid))
     grid_mv = jnp.zeros((grid.num_nodes, d + 1), x.dtype).at[jnp.concatenate(idx)].add(
         jnp.concatenate(vals), mode="drop")
@@ -208,9 +210,10 @@ def g2p(state: State, grid_v, grid: Grid) -> tuple[jax.Array, jax.Array]:
 def constitutive(state: State, v, C, params: Params, grid: Grid, dt) -> State:
     """Advance F and bbar_e with f = I + dt C (eq. 11-16), advect positions, keep them on the grid."""
     d = state.dim
-    f = jnp.eye(d, dtype=C.dtype)[None] + dt * C
-    F = jnp.sum(f[:, :, :, None] * state.F[:, None, :, :], axis=2)
-    bbar, _, gamma = _return_map_with_rate(state.bbar_e, f, params, dt)
+    fc = T.add_diag(T.scale(T.comps(C), dt), 1.0)
+    F = T.array(T.matmul(fc, T.comps(state.F)), state.x[:, 0])
+    bc, _, gamma = _return_map_components(T.comps(state.bbar_e), _pad3(fc), params, dt)
+    bbar = T.array(bc, state.x[:, 0])
     # Particles never leave the stencil-safe region (the walls stop them long before).
     lo = jnp.asarray(grid.origin, C.dtype) + grid.dx
     hi = jnp.asarray(grid.origin, C.dtype) + grid.dx * (jnp.asarray(grid.shape, C.dtype) - 2.0)
@@ -223,6 +226,13 @@ def constitutive(state: State, v, C, params: Params, grid: Grid, dt) -> State:
         gamma_dot=jnp.where(keep, gamma, 0.0), t=state.t + dt)
 
 
+def _pad3(M):
+    """Embed d x d components in the 3x3 identity (plane strain: f_zz = 1)."""
+    d = len(M)
+    return tuple(tuple(M[i][j] if (i < d and j < d) else (1.0 if i == j else 0.0) for j in range(3))
+                 for i in range(3))
+
+
 def substep(state: State, params: Params, scene: Scene, grid: Grid, dt) -> State:
     """One explicit MLS-MPM step of length dt (s): the chain of named stages."""
     with jax.named_scope("p2g"):
@@ -230,7 +240,9 @@ def substep(state: State, params: Params, scene: Scene, grid: Grid, dt) -> State
     with jax.named_scope("grid_update"):
         grid_v = grid_update(grid_mv, grid_m, scene, grid, state.t, dt)
     with jax.named_scope("g2p"):
-        v, C = g2p(state, grid_v, grid)
+        # The barrier materializes v and C: otherwise XLA:CPU fuses the stencil sums into each of the
+        # many constitutive outputs and recomputes them (measured 2.3x slower substep).
+        v, C = jax.lax.optimization_barrier(g2p(state, grid_v, grid))
     with jax.named_scope("constitutive"):
         return constitutive(state, v, C, params, grid, dt)
 

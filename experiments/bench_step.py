@@ -1,0 +1,100 @@
+"""Benchmark: particle-steps per second of the full Herschel-Bulkley MLS-MPM step.
+
+Cases (the classic mpm88 sizes of shared/perf/anchors.md):
+  2D: 8,192 particles, 128^2 cells;  3D: 32,768 particles, 64^3 cells; float32 and float64.
+Each case: compile time of a jitted lax.scan of STEPS substeps, then the median of REPEATS timed runs.
+Writes experiments/bench_step.md next to this script. Usage: python experiments/bench_step.py [--quick]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jaxfoam as jf
+
+# Peer figures on the same 2-core machine (shared/perf/anchors.md), particle-steps/s.
+ANCHORS = {"taichi_2d_f32": 5.3e6, "jax_toy_2d_f32": 4.8e6, "jax_toy_2d_f64": 4.0e6,
+           "taichi_3d_f64": 1.4e6, "jax_toy_3d": 0.9e6}
+CASES = [(2, 8192, 128), (3, 32768, 64)]
+
+
+def make_case(dim, n, cells, dtype):
+    """A yielding foam block in a unit box, particles at random in its lower-middle part."""
+    spec = {"kind": "drop", "dim": dim, "density": 80.0, "kappa": 2000.0,
+            "gravity": [0.0, -9.81] + [0.0] * (dim - 2),
+            "domain": {"min": [0.0] * dim, "max": [1.0] * dim}, "floor": {"y": 0.0, "friction": 0.5},
+            "initial_shape": {"type": "box", "min": [0.3] * dim, "max": [0.7] * dim}}
+    scene = jf.load_scene(spec, dtype=dtype)
+    rng = np.random.default_rng(0)
+    x = 0.3 + 0.4 * rng.random((n, dim))
+    vol = 0.4 ** dim / n
+    state = jf.make_state(x, np.full(n, vol), np.full(n, 80.0 * vol), dtype=dtype)
+    params = jf.Params(mu=200.0, kappa=2000.0, sigma_y=20.0, eta=10.0, m=0.5, rho=80.0).astype(dtype)
+    dx = 1.0 / cells
+    grid = jf.make_grid(scene, dx)
+    dt = jf.stable_dt(params, dx, 5.0)
+    return scene, state, params, grid, dt
+
+
+def run_case(dim, n, cells, dtype, steps, repeats):
+    scene, state, params, grid, dt = make_case(dim, n, cells, dtype)
+
+    @jax.jit
+    def rollout(state, params):
+        def body(s, _):
+            return jf.substep(s, params, scene, grid, dt), None
+        return jax.lax.scan(body, state, None, length=steps)[0]
+
+    t0 = time.perf_counter()
+    out = rollout(state, params)
+    jax.block_until_ready(out)
+    compile_s = time.perf_counter() - t0
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(rollout(state, params))
+        times.append(time.perf_counter() - t0)
+    if not bool(jnp.all(jnp.isfinite(out.x))):
+        raise RuntimeError(f"benchmark case {dim}D went non-finite")
+    med = statistics.median(times)
+    return dict(dim=dim, n=n, cells=cells, dtype=jnp.dtype(dtype).name, steps=steps, compile_s=compile_s,
+                median_s=med, rate=n * steps / med)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="fewer steps and repeats")
+    ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "bench_step.md"))
+    args = ap.parse_args(argv)
+    steps, repeats = (20, 2) if args.quick else (100, 3)
+    rows = []
+    for dim, n, cells in CASES:
+        for dtype in (jnp.float32, jnp.float64):
+            r = run_case(dim, n, cells, dtype, steps if dim == 2 else max(steps // 4, 5), repeats)
+            rows.append(r)
+            print(f"{dim}D {r['dtype']}: {r['rate'] / 1e6:.2f} M particle-steps/s "
+                  f"(compile {r['compile_s']:.1f} s)", flush=True)
+    lines = ["# Full HB MLS-MPM step: particle-steps per second", "",
+             f"Machine: {platform.machine()}, {os.cpu_count()} cores; JAX {jax.__version__}; "
+             f"steps per timed run: 2D {steps}, 3D {max(steps // 4, 5)}; median of {repeats}.", "",
+             "| case | particles | grid | dtype | M particle-steps/s | vs Taichi toy 2D f32 (5.3 M) | vs JAX toy (same dim) | vs Taichi 3D f64 (1.4 M) | compile s |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        toy = ANCHORS["jax_toy_2d_f32" if r["dtype"] == "float32" else "jax_toy_2d_f64"] if r["dim"] == 2 else ANCHORS["jax_toy_3d"]
+        lines.append(f"| {r['dim']}D | {r['n']} | {r['cells']}^{r['dim']} | {r['dtype']} | {r['rate'] / 1e6:.2f} | "
+                     f"{r['rate'] / ANCHORS['taichi_2d_f32']:.2f} | {r['rate'] / toy:.2f} | "
+                     f"{r['rate'] / ANCHORS['taichi_3d_f64']:.2f} | {r['compile_s']:.1f} |")
+    with open(args.out, "w") as fh:
+        fh.write("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
