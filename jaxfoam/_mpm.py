@@ -240,9 +240,7 @@ def substep(state: State, params: Params, scene: Scene, grid: Grid, dt) -> State
     with jax.named_scope("grid_update"):
         grid_v = grid_update(grid_mv, grid_m, scene, grid, state.t, dt)
     with jax.named_scope("g2p"):
-        # The barrier materializes v and C: otherwise XLA:CPU fuses the stencil sums into each of the
-        # many constitutive outputs and recomputes them (measured 2.3x slower substep).
-        v, C = jax.lax.optimization_barrier(g2p(state, grid_v, grid))
+        v, C = g2p(state, grid_v, grid)
     with jax.named_scope("constitutive"):
         return constitutive(state, v, C, params, grid, dt)
 
