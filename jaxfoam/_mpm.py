@@ -135,14 +135,16 @@ def _safe_norm_vec(v):
     return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)
 
 
-def apply_colliders(v, node_x, scene: Scene, t) -> jax.Array:
+def apply_colliders(v, node_x, scene: Scene, t, colliders=()) -> jax.Array:
     """Boundary conditions on grid velocities v (G, d) m/s at nodes node_x (G, d) m, time t s.
 
     - plates: nodes inside a plate take its velocity (sticky) or lose the approaching normal
       component relative to it (slip);
     - floor (y <= floor_y): no slip when sticky, else Coulomb friction with the scene coefficient
       on approaching nodes;
-    - domain walls: slip (outward normal velocity removed) on nodes on or beyond the boundary.
+    - domain walls: slip (outward normal velocity removed) on nodes on or beyond the boundary;
+    - colliders: extra static colliders, each with `apply(v, node_x, t) -> v` (e.g.
+      `jaxfoam.sdf.SDFCollider`), applied last, in order.
     """
     d = v.shape[-1]
     for plate in scene.plates:
@@ -177,14 +179,16 @@ def apply_colliders(v, node_x, scene: Scene, t) -> jax.Array:
     hi = jnp.asarray(scene.domain_max, v.dtype)
     v = jnp.where(node_x <= lo[None, :], jnp.maximum(v, 0.0), v)
     v = jnp.where(node_x >= hi[None, :], jnp.minimum(v, 0.0), v)
+    for collider in colliders:
+        v = collider.apply(v, node_x, t)
     return v
 
 
-def grid_update(grid_mv, grid_m, scene: Scene, grid: Grid, t, dt) -> jax.Array:
+def grid_update(grid_mv, grid_m, scene: Scene, grid: Grid, t, dt, colliders=()) -> jax.Array:
     """Grid velocities (G, d) m/s at the end of the substep: momentum / mass, gravity, colliders."""
     v = safe_div(grid_mv, grid_m[:, None])
     v = v + jnp.where(grid_m[:, None] > 0, dt * scene.gravity.astype(v.dtype)[None, :], 0.0)
-    return apply_colliders(v, grid.node_positions(v.dtype), scene, t + dt)
+    return apply_colliders(v, grid.node_positions(v.dtype), scene, t + dt, colliders)
 
 
 def g2p(state: State, grid_v, grid: Grid) -> tuple[jax.Array, jax.Array]:
@@ -233,22 +237,31 @@ def _pad3(M):
                  for i in range(3))
 
 
-def substep(state: State, params: Params, scene: Scene, grid: Grid, dt) -> State:
-    """One explicit MLS-MPM step of length dt (s): the chain of named stages."""
+def substep(state: State, params: Params, scene: Scene, grid: Grid, dt, fracture=None, colliders=()) -> State:
+    """One explicit MLS-MPM step of length dt (s): the chain of named stages.
+
+    Optional static stages: `colliders` (see `apply_colliders`), and `fracture`, an object with
+    `apply(new_state, old_state, grid_m, grid) -> State` run after the constitutive update
+    (`jaxfoam.fracture.FractureConfig`). With the defaults the step is the plain MLS-MPM step.
+    """
     with jax.named_scope("p2g"):
         grid_mv, grid_m = p2g(state, params, grid, dt)
     with jax.named_scope("grid_update"):
-        grid_v = grid_update(grid_mv, grid_m, scene, grid, state.t, dt)
+        grid_v = grid_update(grid_mv, grid_m, scene, grid, state.t, dt, colliders)
     with jax.named_scope("g2p"):
         v, C = g2p(state, grid_v, grid)
     with jax.named_scope("constitutive"):
-        return constitutive(state, v, C, params, grid, dt)
+        new = constitutive(state, v, C, params, grid, dt)
+    if fracture is not None:
+        with jax.named_scope("fracture"):
+            new = fracture.apply(new, state, grid_m, grid)
+    return new
 
 
-def make_step(scene: Scene, grid: Grid, dt: float):
+def make_step(scene: Scene, grid: Grid, dt: float, fracture=None, colliders=()):
     """Bind the static configuration once: returns the pure `step(state, params) -> state`."""
 
     def step(state: State, params: Params) -> State:
-        return substep(state, params, scene, grid, dt)
+        return substep(state, params, scene, grid, dt, fracture, colliders)
 
     return step

@@ -87,14 +87,22 @@ class Plan:
         return np.diff(t) / self.substeps
 
 
-def _rollout_impl(state0, params, scene, frame_times, frame_dts, grid, substeps, observe, checkpoint):
+def _rollout_impl(state0, params, scene, frame_times, frame_dts, grid, substeps, observe, checkpoint,
+                  resample=None, fracture=None, colliders=()):
     def frame(state, inputs):
-        t_target, dt = inputs
+        t_target, dt = inputs[:2]
 
-        def sub(s, _):
-            return substep(s, params, scene, grid, dt), None
+        def sub(s, i):
+            s = substep(s, params, scene, grid, dt, fracture, colliders)
+            if resample is not None:
+                # Resampling pass after every `resample.every`-th substep of the whole rollout.
+                n = inputs[2] * substeps + i + 1
+                s = jax.lax.cond(n % resample.every == 0, lambda s: resample.apply(s, grid, n),
+                                 lambda s: s, s)
+            return s, None
 
-        state, _ = jax.lax.scan(sub, state, None, length=substeps)
+        xs = None if resample is None else jnp.arange(substeps)
+        state, _ = jax.lax.scan(sub, state, xs, length=substeps)
         state = state.replace(t=t_target)
         return state, (observe(state, params), _health(state))
 
@@ -102,11 +110,13 @@ def _rollout_impl(state0, params, scene, frame_times, frame_dts, grid, substeps,
         # Reverse mode stores one state per frame and recomputes the frame's substeps: peak memory
         # grows with the number of frames, not the number of substeps.
         frame = jax.checkpoint(frame)
-    final, (frames, health) = jax.lax.scan(frame, state0, (frame_times, frame_dts))
+    xs = (frame_times, frame_dts) if resample is None else (frame_times, frame_dts, jnp.arange(len(frame_times)))
+    final, (frames, health) = jax.lax.scan(frame, state0, xs)
     return final, frames, health
 
 
-_rollout_jit = jax.jit(_rollout_impl, static_argnames=("grid", "substeps", "observe", "checkpoint"))
+_rollout_jit = jax.jit(_rollout_impl, static_argnames=("grid", "substeps", "observe", "checkpoint", "resample",
+                                                       "fracture", "colliders"))
 
 
 class Simulator:
@@ -121,6 +131,11 @@ class Simulator:
       dtype: jnp.float32 or jnp.float64.  cfl: CFL number.  first_mask: (mask, camera) for
       initial_shape 'first_mask'.  seed: sampling seed.  capacity: particle slots (>= sampled count).
       max_speed: override of the material speed bound, m/s.  substeps: override of substeps per frame.
+      resample: a `jaxfoam.resample.ResampleConfig` (or None): particle resampling every
+        `resample.every` substeps inside the rollout; with no capacity given, the state gets
+        `resample.capacity_factor` times the sampled number of slots.
+      fracture: a `jaxfoam.fracture.FractureConfig` (or None): the fracture stage of each substep.
+      colliders: a tuple of extra colliders (e.g. `jaxfoam.sdf.SDFCollider`), applied on the grid.
     Attributes: grid, state0, plan, dt (largest substep, s), substeps, step (the pure
       `step(state, params)` at dt).
     """
@@ -128,7 +143,7 @@ class Simulator:
     def __init__(self, scene: Scene, frame_times, params: Params, dx: float, ppc: int | None = None,
                  dtype=jnp.float64, cfl: float = CFL, first_mask=None, seed: int = 0,
                  capacity: int | None = None, max_speed: float | None = None, substeps: int | None = None,
-                 state0: State | None = None):
+                 state0: State | None = None, resample=None, fracture=None, colliders=()):
         params.validate()
         if not (isinstance(dx, (int, float)) and dx > 0 and math.isfinite(dx)):
             raise ValueError(f"dx must be a positive grid spacing in m, got {dx!r}")
@@ -149,10 +164,17 @@ class Simulator:
         self.state0 = state0 if state0 is not None else init_state(
             scene, dx, ppc, rho=float(params.rho), seed=seed, first_mask=first_mask, capacity=capacity,
             dtype=dtype)
+        self.resample, self.fracture, self.colliders = resample, fracture, tuple(colliders)
+        if resample is not None:
+            resample.validate(scene.dim)
+            if capacity is None:
+                self.state0 = resample.prepare(self.state0)
         t0 = float(self.state0.t)
         if np.any(np.diff(np.concatenate([[t0], times])) <= 0):
             raise ValueError(f"frame_times must be strictly increasing and after the start time {t0} s")
         self.max_speed = speed_bound(scene) if max_speed is None else float(max_speed)
+        if max_speed is None and self.colliders:
+            self.max_speed += SPEED_SAFETY * max(c.max_speed() for c in self.colliders)
         self.dt_cfl = stable_dt(params, dx, self.max_speed, cfl)
         widest = float(np.max(np.diff(np.concatenate([[t0], times]))))
         n = int(math.ceil(widest / self.dt_cfl - 1e-9)) if substeps is None else int(substeps)
@@ -160,7 +182,7 @@ class Simulator:
             raise ValueError(f"substeps must be >= 1, got {n}")
         self.plan = Plan(frame_times=tuple(times.tolist()), substeps=n, t0=t0)
         self.dt = widest / n
-        self.step = make_step(scene, self.grid, self.dt)
+        self.step = make_step(scene, self.grid, self.dt, fracture, self.colliders)
 
     @property
     def substeps(self) -> int:
@@ -183,7 +205,7 @@ class Simulator:
         params = params.astype(self.dtype)
         return _rollout_jit(state0, params, scene, jnp.asarray(self.plan.frame_times, self.dtype),
                             jnp.asarray(self.plan.frame_dts, self.dtype), self.grid, self.plan.substeps,
-                            observe, checkpoint)
+                            observe, checkpoint, self.resample, self.fracture, self.colliders)
 
     def check(self, frames, health) -> None:
         """Raise SimulationError naming the first frame, time, quantity and particle that went bad."""
