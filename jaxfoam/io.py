@@ -32,6 +32,8 @@ CAMERA_MODEL = "orthographic"
 CAMERA_AXIS = "z"
 # gzip level 4: masks are long runs of 0 and 1 and compress ~50x; higher levels gain little and cost time.
 GZIP_LEVEL = 4
+# Round-off allowance, in pixels, when a box edge falls on a pixel boundary.
+EDGE_TOL = 1e-9
 
 
 class SilhouetteFormatError(ValueError):
@@ -93,8 +95,8 @@ def camera_covering(scene: Scene, pixel_size: float) -> tuple[Camera, tuple[int,
         raise ValueError(f"pixel_size must be a positive length in m, got {pixel_size!r}")
     lo = np.asarray(scene.domain_min[:2], float)
     hi = np.asarray(scene.domain_max[:2], float)
-    # 1e-9 keeps an exact multiple of the pixel size from gaining an empty extra row or column.
-    W, H = (int(math.ceil((hi[k] - lo[k]) / pixel_size - 1e-9)) for k in range(2))
+    # EDGE_TOL keeps an exact multiple of the pixel size from gaining an empty extra row or column.
+    W, H = (int(math.ceil((hi[k] - lo[k]) / pixel_size - EDGE_TOL)) for k in range(2))
     return Camera(pixel_size=float(pixel_size), origin=(float(lo[0]), float(lo[1]))), (H, W)
 
 
@@ -111,10 +113,11 @@ def plate_footprint(scene: Scene, t: float, camera: Camera, shape) -> np.ndarray
     for plate in scene.plates:
         c = np.asarray(plate.position(t), float)[:2]
         h = np.asarray(plate.half_size, float)[:2]
-        j_lo = int(math.floor((c[0] - h[0] - x0) / p))
-        j_hi = int(math.ceil((c[0] + h[0] - x0) / p))  # exclusive
-        r_lo = int(math.floor((c[1] - h[1] - y0) / p))  # rows counted from the bottom
-        r_hi = int(math.ceil((c[1] + h[1] - y0) / p))
+        # EDGE_TOL: an edge on a pixel boundary (up to round-off) does not claim the next pixel.
+        j_lo = int(math.floor((c[0] - h[0] - x0) / p + EDGE_TOL))
+        j_hi = int(math.ceil((c[0] + h[0] - x0) / p - EDGE_TOL))  # exclusive
+        r_lo = int(math.floor((c[1] - h[1] - y0) / p + EDGE_TOL))  # rows counted from the bottom
+        r_hi = int(math.ceil((c[1] + h[1] - y0) / p - EDGE_TOL))
         j_lo, j_hi = max(j_lo, 0), min(j_hi, W)
         r_lo, r_hi = max(r_lo, 0), min(r_hi, H)
         if j_lo < j_hi and r_lo < r_hi:
@@ -255,7 +258,7 @@ def _check_arrays(masks, times, weights, where: str):
     bad = (masks != 0) & (masks != 1)
     if bad.any():
         t, i, j = np.argwhere(bad)[0]
-        _fail(where, "masks", f"values must be 0 or 1 (uint8); frame {t} pixel ({i}, {j}) holds {masks[t, i, j]!r}")
+        _fail(where, "masks", f"values must be 0 or 1 (uint8); frame {t} pixel ({i}, {j}) holds {masks[t, i, j].item()!r}")
     masks = masks.astype(np.uint8)
 
     times = np.asarray(times)
@@ -367,7 +370,8 @@ def read_silhouettes(path: str | os.PathLike) -> Silhouettes:
         except (TypeError, ValueError):
             version_ok = False
         if not version_ok:
-            _fail(where, "version", f"this reader understands version {VERSION}, got {version!r}")
+            _fail(where, "version", f"this reader understands version {VERSION}, got "
+                                    f"{version.item() if isinstance(version, np.generic) else version!r}")
         for name in ("masks", "times"):
             if name not in fh or not isinstance(fh[name], h5py.Dataset):
                 _fail(where, name, "required dataset missing")

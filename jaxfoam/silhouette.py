@@ -5,10 +5,14 @@ Rendering (pure JAX, static shapes, jit/vmap/grad friendly):
 1. `project`: orthographic camera along -z (shared/specs/silhouettes.md): a particle's image position
    is its (x, y); in 3D z is dropped.
 2. `splat_density`: every active particle spreads its projected area a = s^2 (s = dx / ppc^(1/d), the
-   particle spacing) over the pixel grid with a separable quadratic B-spline kernel of width h
-   (a scatter-add onto the pixels of a static stencil). The result D is a dimensionless coverage:
-   D = 1 inside a 2D body whose particles sit at spacing s, D = (number of particle layers along z)
-   inside a 3D body, D -> 1/2 on a straight edge (the kernel is symmetric), 0 far outside.
+   particle spacing) over the pixel grid with a separable quadratic B-spline kernel of width h,
+   renormalized over the pixels it touches (a scatter-add onto a static stencil), so the image
+   holds exactly N a / p^2 in total. The result D is a dimensionless coverage: about 1 inside a
+   body, 1/2 on a straight edge (the kernel is symmetric), 0 beyond the kernel's reach.
+   In 3D a column of material holds L / s particle layers; summing them would blow the kernel's
+   tails up by that factor and dilate the silhouette by up to 1.5 h. The 3D coverage is therefore
+   depth-normalized: the first three z-moments of the splat give the column's thickness
+   L = sqrt(12 var(z) + s^2) (exact for a uniform column) and D = s sum(a K) / L.
 3. `occupancy`: O = 1 - exp(-ln 2 (D / D_half)^k) in [0, 1): O = 1/2 exactly at D = D_half = 1/2,
    so the soft silhouette's half-level lies on the material boundary (no outward bias).
 
@@ -20,7 +24,8 @@ Losses against observed masks (row 0 = top), with per-pixel weights in [0, 1]:
   samples the exact Euclidean distance transform of the observed mask (computed once in numpy,
   `distance_transform`) at each particle (particles outside the mask are pulled in), and `chamfer`
   measures from each observed boundary pixel to the nearest particle (the mask pulls particles out).
-  Both have a dead zone of `margin` pixels so they vanish when the shapes agree to within a pixel.
+  Both have a dead zone (`margin` pixels; the chamfer's one particle spacing more) so they vanish
+  when the shapes agree to within a pixel.
 - `pyramid`: the observed masks downsampled by 2, 4, ... (soft coverage targets) for coarse-to-fine fits.
 - `make_target` bundles one observation level (masks, weights, distance fields, boundary points) and
   `silhouette_loss` / `residuals` combine the terms over frames.
@@ -48,6 +53,8 @@ KERNEL_PIXELS = 1.0
 # Coverage at which the occupancy is 1/2: the value of D on the straight edge of a uniformly
 # covered half-plane under a symmetric kernel.
 HALF_DENSITY = 0.5
+# Coverage below which a pixel counts as empty in the 3D depth normalization (round-off level).
+DENSITY_FLOOR = 1e-12
 # Exponent k of the occupancy map: D = 1 gives O = 1 - 2^-8 (0.996), D = 0.25 gives 0.08.
 OCC_POWER = 3.0
 # Probability clip of the cross-entropy: caps a single wrong pixel's loss at -log(1e-4) ~ 9.2.
@@ -73,7 +80,7 @@ class RenderConfig:
       height, width: image shape H, W, pixels.
       pixel_size: m per pixel.  origin: (x0, y0), m, the image's bottom-left corner.
       kernel_width: B-spline width h, m (support +-1.5 h).
-      particle_area: projected area per particle a = s^2, m^2 (s the particle spacing).
+      spacing: particle spacing s = dx / ppc^(1/d), m.  dim: 2 or 3 (3: depth-normalized coverage).
       half_density: coverage D at which occupancy is 1/2.  power: occupancy exponent k.
     """
 
@@ -82,13 +89,19 @@ class RenderConfig:
     pixel_size: float
     origin: tuple
     kernel_width: float
-    particle_area: float
+    spacing: float
+    dim: int = 2
     half_density: float = HALF_DENSITY
     power: float = OCC_POWER
 
     @property
     def shape(self) -> tuple[int, int]:
         return (self.height, self.width)
+
+    @property
+    def particle_area(self) -> float:
+        """Projected area per particle a = s^2, m^2."""
+        return self.spacing * self.spacing
 
     @property
     def stencil(self) -> int:
@@ -114,7 +127,8 @@ def make_render_config(camera: Camera | dict, shape, dx: float, ppc: int, dim: i
     Args:
       camera: `Camera` (or dict with pixel_size, origin).  shape: (H, W).
       dx: simulation grid spacing, m.  ppc: particles per cell.  dim: 2 or 3.
-      kernel_spacings, kernel_pixels: kernel width h = max(kernel_spacings s, kernel_pixels p).
+      kernel_spacings, kernel_pixels: kernel width h = max(kernel_spacings s, kernel_pixels p);
+        h must be at least half a pixel (so every particle reaches a pixel centre).
     """
     if isinstance(camera, dict):
         camera = Camera(pixel_size=float(camera["pixel_size"]), origin=tuple(map(float, camera["origin"])))
@@ -125,13 +139,14 @@ def make_render_config(camera: Camera | dict, shape, dx: float, ppc: int, dim: i
         raise ValueError(f"dim must be 2 or 3, got {dim}")
     if not (dx > 0 and ppc >= 1):
         raise ValueError(f"dx must be > 0 m and ppc >= 1, got dx={dx}, ppc={ppc}")
-    if not (kernel_spacings > 0 and kernel_pixels >= 0):
-        raise ValueError(f"kernel_spacings must be > 0 and kernel_pixels >= 0, got {kernel_spacings}, {kernel_pixels}")
     s = particle_spacing(dx, ppc, dim)
     h = max(kernel_spacings * s, kernel_pixels * camera.pixel_size)
+    if not h >= 0.5 * camera.pixel_size:
+        raise ValueError(f"kernel width {h:.3g} m must be >= half a pixel ({camera.pixel_size / 2:.3g} m): "
+                         f"raise kernel_spacings or kernel_pixels")
     return RenderConfig(height=H, width=W, pixel_size=float(camera.pixel_size),
                         origin=(float(camera.origin[0]), float(camera.origin[1])), kernel_width=float(h),
-                        particle_area=s * s)
+                        spacing=s, dim=int(dim))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -154,39 +169,66 @@ def _bspline2(r):
 def _axis_weights(u, n_pix, cfg: RenderConfig):
     """Kernel weights along one axis: u (N,) particle coordinate in pixels from the image edge.
 
-    Returns (index (N, K) int, weight (N, K) in 1/m, valid (N, K) bool) for the K stencil pixels.
+    Returns (index (N, K) int, weight (N, K) in 1/m summing to 1/p over the stencil, valid (N, K)
+    bool: inside the image) for the K stencil pixels.
     """
     reach = BSPLINE_SUPPORT * cfg.kernel_width / cfg.pixel_size
     base = jnp.floor(u - 0.5 - reach).astype(jnp.int32) + 1
     idx = base[:, None] + jnp.arange(cfg.stencil, dtype=jnp.int32)[None, :]
     centre = idx.astype(u.dtype) + 0.5
     r = (centre - u[:, None]) * (cfg.pixel_size / cfg.kernel_width)
-    w = _bspline2(r) / cfg.kernel_width
+    w = _bspline2(r)
+    # Renormalized over the stencil: the sampled B-spline is a partition of unity only when p = h.
+    w = w / (jnp.sum(w, axis=1, keepdims=True) * cfg.pixel_size)
     return idx, w, (idx >= 0) & (idx < n_pix)
 
 
-def splat_density(x: jax.Array, active: jax.Array, cfg: RenderConfig) -> jax.Array:
-    """Projected coverage D (H, W) of the particles (dimensionless; row 0 = top of the image).
-
-    D(pixel) = sum over active particles of a K_h(c - x_p), with c the pixel centre, a = s^2 the
-    particle's projected area and K_h the normalized separable quadratic B-spline of width h.
-    x: (N, d) m.  active: (N,) bool.
-    """
+def splat(x: jax.Array, values: jax.Array, cfg: RenderConfig) -> jax.Array:
+    """Scatter-add per-particle values (N, C) with the kernel onto the image: (H, W, C), in units of
+    values per m^2 (row 0 = top). x: (N, d) m (projected along z)."""
     xy = project(x)
     H, W = cfg.shape
     u = (xy[:, 0] - cfg.origin[0]) / cfg.pixel_size  # columns from the left edge
     v = (xy[:, 1] - cfg.origin[1]) / cfg.pixel_size  # rows from the bottom edge
     ju, wu, oku = _axis_weights(u, W, cfg)
     rv, wv, okv = _axis_weights(v, H, cfg)
-    amount = cfg.particle_area * jnp.where(active, 1.0, 0.0).astype(x.dtype)
-    vals = (amount[:, None, None] * wv[:, :, None]) * wu[:, None, :]
+    w = wv[:, :, None] * wu[:, None, :]
     row = (H - 1) - rv  # image rows count from the top
     flat = row[:, :, None] * W + ju[:, None, :]
     ok = okv[:, :, None] & oku[:, None, :]
     # Out-of-image stencil pixels go to one spare slot that is cut off afterwards.
     flat = jnp.where(ok, flat, H * W)
-    img = jnp.zeros((H * W + 1,), x.dtype).at[flat.reshape(-1)].add(vals.reshape(-1))
-    return img[: H * W].reshape(H, W)
+    C = values.shape[1]
+    contrib = w[:, :, :, None] * values[:, None, None, :]
+    img = jnp.zeros((H * W + 1, C), values.dtype).at[flat.reshape(-1)].add(contrib.reshape(-1, C))
+    return img[: H * W].reshape(H, W, C)
+
+
+def splat_density(x: jax.Array, active: jax.Array, cfg: RenderConfig) -> jax.Array:
+    """Projected coverage D (H, W) of the particles (dimensionless; row 0 = top of the image).
+
+    2D: D(pixel) = sum over active particles of a K_h(c - x_p), c the pixel centre, a = s^2 the
+    particle's area, K_h the (renormalized) separable quadratic B-spline of width h.
+    3D: the same sum times s / L, L = sqrt(12 var(z) + s^2) the local thickness along the camera axis
+    (var(z) from the kernel-weighted z-moments), so that D ~ 1 inside whatever the depth.
+    x: (N, d) m.  active: (N,) bool.
+    """
+    on = jnp.where(active, 1.0, 0.0).astype(x.dtype)
+    amount = cfg.particle_area * on
+    if cfg.dim == 2 or x.shape[1] == 2:
+        return splat(x, amount[:, None], cfg)[:, :, 0]
+    # z relative to the particles' mean depth: the moments then do not cancel in floating point.
+    zc = jax.lax.stop_gradient(jnp.sum(on * x[:, 2]) / jnp.maximum(jnp.sum(on), 1.0))
+    z = x[:, 2] - zc
+    m = splat(x, jnp.stack([amount, amount * z, amount * z * z], axis=1), cfg)
+    total = m[:, :, 0]
+    # Below this coverage a pixel is empty to round-off: its moments are not formed (no 0/0).
+    occupied = total > DENSITY_FLOOR
+    safe = jnp.where(occupied, total, 1.0)
+    mean = m[:, :, 1] / safe
+    var = jnp.maximum(m[:, :, 2] / safe - mean * mean, 0.0)
+    thickness = jnp.sqrt(12.0 * var + cfg.spacing ** 2)
+    return jnp.where(occupied, total * (cfg.spacing / thickness), 0.0)
 
 
 def occupancy(density: jax.Array, cfg: RenderConfig) -> jax.Array:
@@ -353,7 +395,9 @@ def particle_distance(x, active, dist_field, cfg: RenderConfig, margin: float = 
 
 def chamfer(x, active, points, point_weights, cfg: RenderConfig, margin: float = DISTANCE_MARGIN) -> jax.Array:
     """Per-point distance from observed boundary points (M, 2) m to the nearest active particle,
-    in kernel widths h, minus a dead zone of `margin` pixels; (M,) (0 where point_weights is 0)."""
+    in kernel widths h, minus a dead zone of `margin` pixels plus one particle spacing (material
+    reaches about half a spacing beyond its outermost particles, more where jittered or stretched);
+    (M,) (0 where point_weights is 0)."""
     xy = project(x)
     d2 = jnp.sum(jnp.square(points[:, None, :] - xy[None, :, :]), axis=-1)
     far = jnp.asarray(1e30, d2.dtype)
@@ -361,7 +405,7 @@ def chamfer(x, active, points, point_weights, cfg: RenderConfig, margin: float =
     dmin2 = jnp.min(d2, axis=1)
     # sqrt with a floor: its derivative stays finite when a particle sits exactly on a point.
     dist = jnp.sqrt(jnp.maximum(dmin2, (1e-9 * cfg.pixel_size) ** 2)) / cfg.pixel_size
-    d = _dead_zone(dist, margin) * (cfg.pixel_size / cfg.kernel_width)
+    d = _dead_zone(dist, margin + cfg.spacing / cfg.pixel_size) * (cfg.pixel_size / cfg.kernel_width)
     return jnp.where(point_weights > 0, d, 0.0)
 
 
