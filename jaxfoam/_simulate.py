@@ -223,7 +223,8 @@ class Simulator:
         raise SimulationError(
             f"simulation became non-finite at frame {k} (t = {self.plan.frame_times[k]:.6g} s, "
             f"within substeps of dt = {self.dt:.3g} s): first bad quantity '{name}' at particle {p}{where}. "
-            f"Reduce the time step (cfl, currently {self.dt / self.dt_cfl * 0 + self.dt:.3g} s) or dx, "
+            f"Reduce the time step (dt = {self.dt:.3g} s, CFL bound {self.dt_cfl:.3g} s: lower cfl or "
+            f"leave substeps to the CFL bound) or dx, "
             f"or check the parameters.")
 
 
