@@ -19,8 +19,8 @@ import numpy as np
 from ._base import RUNNING, AbstractOptimizer, as_array, check_positive, scalar, host
 from ._solution import Reason, reason_code
 
-_EPS = float(np.finfo(np.float64).eps)
-# A predicted decrease below this multiple of eps * loss is round-off: the point cannot be improved.
+# A predicted decrease below this multiple of eps * loss (eps of the parameters' dtype) is round-off:
+# the point cannot be improved.
 _ROUNDOFF_FACTOR = 16.0
 # Floor of the scaling D relative to its largest entry, so a parameter the residuals ignore (zero column
 # of J) still gets a damped, finite step.
@@ -120,12 +120,13 @@ class LevenbergMarquardt(AbstractOptimizer):
         loss = scalar(state.loss)
         damping, nu = scalar(state.damping), scalar(state.nu)
         x_host = np.asarray(x)
+        eps = float(np.finfo(x_host.dtype).eps)
         all_nonfinite = True
         reason = Reason.STALLED
         for _ in range(int(self.max_rejections)):
             x_new, h, predicted = _damped_step(x, jtj, grad, scale, host(damping, x.dtype))
             predicted = scalar(predicted)
-            if not predicted > _ROUNDOFF_FACTOR * _EPS * loss:  # nothing left to gain at this precision
+            if not predicted > _ROUNDOFF_FACTOR * eps * loss:  # nothing left to gain at this precision
                 reason, all_nonfinite = Reason.CONVERGED_FTOL, False
                 break
             if np.array_equal(np.asarray(x_new), x_host):  # the step is below the resolution of x

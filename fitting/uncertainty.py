@@ -183,6 +183,11 @@ class Uncertainty:
             lines.append(f"{n:<12}" + "".join(f"{c:>10.3f}" for c in self.correlation[i]))
         lines.append(f"residual variance s^2 = {self.s2:.4g} from n = {self.n} residuals "
                      f"(n_eff = {self.n_eff:g} independent)")
+        if len(self.names) > 1:
+            v = self.eigenvectors[:, 0]
+            combo = " ".join(f"{v[j]:+.2f}*{c}" for j, c in enumerate(self.coordinates))
+            lines.append(f"weakest direction of the scaled J^T J: eigenvalue ratio {self.eigenvalues[0]:.3g} "
+                         f"along {combo}")
         lines.extend(self.messages)
         return "\n".join(lines)
 
