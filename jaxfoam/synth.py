@@ -40,8 +40,6 @@ MAX_SUPERSAMPLE = 8
 FINE_KERNEL_SPACINGS = 1.5
 _splat = jax.jit(splat_density, static_argnames=("cfg",))
 
-# Default resolution when none is given: this many grid cells across the domain's largest extent.
-DEFAULT_CELLS = 64
 
 
 def parse_params(text: str) -> dict:
@@ -105,7 +103,8 @@ def synthesize(scene: Scene | dict | str, params: dict, dx: float | None = None,
     Args:
       scene: the scene (parsed, dict, JSON text or path); its initial_shape must be box or ellipse.
       params: {mu (Pa), sigma_y (Pa), eta (Pa s^m), m}; kappa and density come from the scene.
-      dx: simulation grid spacing, m (default: the domain's largest extent / DEFAULT_CELLS).
+      dx: simulation grid spacing, m (default: `jaxfoam simulate`'s, the domain's largest extent / 64
+        in 2D, / 32 in 3D).
       ppc: particles per cell (default 4 in 2D, 8 in 3D).
       frames: number of frames before dropping, evenly spaced on [0, duration] s (frame 0 is t = 0).
       pixel_size: m per pixel (default dx / 2); the camera covers the domain's (x, y) extent.
@@ -128,8 +127,11 @@ def synthesize(scene: Scene | dict | str, params: dict, dx: float | None = None,
                rho=scene.density).validate()
     d = scene.dim
     ppc = DEFAULT_PPC[d] if ppc is None else int(ppc)
-    extent = max(b - a for a, b in zip(scene.domain_min, scene.domain_max))
-    dx = extent / DEFAULT_CELLS if dx is None else float(dx)
+    if dx is None:
+        from .cli import default_dx
+
+        dx = default_dx(scene)
+    dx = float(dx)
     pixel_size = dx / 2 if pixel_size is None else float(pixel_size)
     if not (isinstance(frames, int) and frames >= 2):
         raise ValueError(f"frames must be an integer >= 2, got {frames!r}")
@@ -153,11 +155,13 @@ def synthesize(scene: Scene | dict | str, params: dict, dx: float | None = None,
     act = np.concatenate([np.asarray(sim.state0.active)[None], np.asarray(traj["active"])], axis=0)
 
     masks = hard_masks(xs, act, camera, shape, dx, ppc, d)
-    rng = np.random.default_rng(seed + 1)
+    # Separate streams: the frames dropped do not depend on the noise level.
+    rng_noise = np.random.default_rng([seed, 1])
+    rng_drop = np.random.default_rng([seed, 2])
     weights = np.ones(masks.shape, np.float32)
     for t in range(frames):
         if noise > 0:
-            flip = boundary_pixels(masks[t]) & (rng.random(shape) < noise)
+            flip = boundary_pixels(masks[t]) & (rng_noise.random(shape) < noise)
             masks[t] ^= flip.astype(np.uint8)
         plate = plate_footprint(scene, float(times[t]), camera, shape)
         masks[t][plate] = 0
@@ -165,7 +169,7 @@ def synthesize(scene: Scene | dict | str, params: dict, dx: float | None = None,
     keep = np.ones(frames, bool)
     n_drop = int(round(drop_frames * (frames - 1)))
     if n_drop:
-        keep[1 + rng.choice(frames - 1, size=n_drop, replace=False)] = False
+        keep[1 + rng_drop.choice(frames - 1, size=n_drop, replace=False)] = False
 
     spec = scene.spec
     if first_mask:
@@ -191,7 +195,7 @@ def add_synth_parser(subparsers) -> argparse.ArgumentParser:
     ap.add_argument("scene", help="scene JSON file (initial_shape box or ellipse)")
     ap.add_argument("--params", required=True, help="mu=..,sigma_y=..,eta=..,m=.. (Pa, Pa, Pa s^m, -)")
     ap.add_argument("--out", required=True, help="output silhouette file (.h5)")
-    ap.add_argument("--dx", type=float, default=None, help=f"grid spacing, m (default: domain extent / {DEFAULT_CELLS})")
+    ap.add_argument("--dx", type=float, default=None, help="grid spacing, m (default: the largest domain extent / 64 in 2D, / 32 in 3D)")
     ap.add_argument("--ppc", type=int, default=None, help="particles per cell (default 4 in 2D, 8 in 3D)")
     ap.add_argument("--frames", type=int, default=16, help="frames on [0, duration], before dropping (default 16)")
     ap.add_argument("--duration", type=float, default=1.0, help="simulated time, s (default 1)")

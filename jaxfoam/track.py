@@ -324,6 +324,11 @@ def track_video(video: str | os.PathLike, pixel_size: float, origin, scene, *, b
                              invert=invert, open_radius=open_radius, close_radius=close_radius, holes=holes,
                              plate_margin=plate_margin))
     empty = [t for t in range(T) if not masks[t].any()]
+    if 0 in empty and parsed.initial_shape.get("type") == "first_mask":
+        hint = (" (background 'first' takes the first frame as the empty scene: use 'median' or an image of "
+                "the empty scene)" if isinstance(background, str) and background == "first" else "")
+        raise ValueError(f"track: no foam found in the first frame, which the scene's initial_shape "
+                         f"'first_mask' needs{hint}; threshold used {thr:.3f}")
     if empty:
         say(f"warning: no foam found in {len(empty)} frame(s), first at t = {times[empty[0]]:.3f} s")
     return validate(masks, times, camera, parsed.spec, weights=weights, source=source)
