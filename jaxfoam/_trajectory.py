@@ -182,6 +182,7 @@ class TrajectoryWriter:
         self.dtype = dtype
         self.path = os.fspath(path)
         self.compression = compression
+        os.makedirs(os.path.dirname(os.path.abspath(self.path)), exist_ok=True)
         self._file = h5py.File(self.path, "w")
         f = self._file
         f.attrs.update(dict(format=FORMAT, format_version=FORMAT_VERSION, jaxfoam_version=_version(),

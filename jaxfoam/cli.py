@@ -67,9 +67,10 @@ class Progress:
         if not self.enabled:
             return
         now = time.perf_counter()
+        rate = None
         if self.rate_start is None:
-            self.rate_start = (now, substeps_done)
-            rate = None
+            if frames_done > 0:  # the first block (compilation included) has just finished
+                self.rate_start = (now, substeps_done)
         else:
             dt_wall = now - self.rate_start[0]
             rate = (substeps_done - self.rate_start[1]) / dt_wall if dt_wall > 0 else None
@@ -80,11 +81,11 @@ class Progress:
         filled = int(round(frac * BAR_WIDTH))
         bar = "#" * filled + "." * (BAR_WIDTH - filled)
         if rate:
-            left = (1.0 - frac) / frac * (now - self.start) if frac > 0 else math.nan
+            left = (self.total - frames_done) * (substeps_done / frames_done) / rate
             speed = (f"{rate:,.0f} substeps/s, {rate * self.particles / 1e6:.2f} M particle-steps/s, "
                      f"~{left:.0f} s left")
         else:
-            speed = "compiling + first frame"
+            speed = "compiling + first frame" if frames_done == 0 else "measuring speed"
         line = (f"[{bar}] t = {t:.3f}/{self.t_end:.3f} s  frame {frames_done}/{self.total}  {speed}  "
                 f"({now - self.start:.0f} s)")
         if self.tty:

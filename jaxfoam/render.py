@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import os
+import warnings
 
 import numpy as np
 
@@ -179,7 +180,7 @@ def render_contact_sheet(traj, out_png, n_frames: int = 8, color: str = "gamma_d
       out_png: output path.
       n_frames: number of panels (frames evenly spread from first to last).
       color: "gamma_dot" (plastic strain rate, 1/s, log scale) or "s" (deviatoric stress, Pa).
-      ncols: panels per row (default min(n_frames, 4)).  panel_width: inches.  dpi: resolution.
+      ncols: panels per row (default: at most 4, rows as even as possible).  panel_width: inches.  dpi: resolution.
       vmin, vmax: colour scale limits (1/s or Pa; default: from the shown frames).
     """
     _require_matplotlib()
@@ -192,7 +193,8 @@ def render_contact_sheet(traj, out_png, n_frames: int = 8, color: str = "gamma_d
     idx = _frame_indices(traj.num_frames, int(n_frames))
     style = _Style(traj, color, idx, vmin, vmax)
     n = len(idx)
-    ncols = min(n, 4) if ncols is None else max(1, int(ncols))
+    # Default: at most 4 panels per row, rows filled as evenly as possible (5 -> 3 + 2, 8 -> 4 + 4).
+    ncols = math.ceil(n / math.ceil(n / 4)) if ncols is None else max(1, int(ncols))
     nrows = math.ceil(n / ncols)
     aspect = (style.ylim[1] - style.ylim[0]) / (style.xlim[1] - style.xlim[0])
     fig = Figure(figsize=(ncols * panel_width + 1.4, nrows * panel_width * aspect + 0.9), dpi=dpi,
@@ -260,6 +262,7 @@ def render_video(traj, out_mp4, fps: int = 20, color: str = "gamma_dot", width_p
     ax.set_xlabel("x (m)", fontsize=8)
     ax.set_ylabel("y (m)", fontsize=8)
     style.colorbar(fig, ax)
+    ax.set_title(f"t = {float(traj.times[0]):.3f} s", fontsize=8)  # reserve the title's room in the layout
     fig.get_layout_engine().execute(fig)
     xy, c = style.values(0)
     dots = ax.scatter(xy[:, 0], xy[:, 1], c=c, s=style.dot_size(ax), cmap=style.cmap, norm=style.norm,
@@ -267,15 +270,19 @@ def render_video(traj, out_mp4, fps: int = 20, color: str = "gamma_dot", width_p
     fig.set_layout_engine("none")  # freeze the layout: every video frame has the same geometry
     plates = style.draw_plates(ax, float(traj.times[0]))
     os.makedirs(os.path.dirname(os.path.abspath(os.fspath(out_mp4))), exist_ok=True)
-    with imageio.get_writer(os.fspath(out_mp4), fps=fps, codec="libx264", quality=7, macro_block_size=16) as writer:
-        for k in idx:
-            xy, c = style.values(k)
-            dots.set_offsets(xy)
-            dots.set_array(c)
-            for patch, (corner, (w, h)) in zip(plates, style.plate_rects(float(traj.times[k]))):
-                patch.set_xy(corner)
-            ax.set_title(f"t = {float(traj.times[k]):.3f} s", fontsize=8)
-            canvas.draw()
-            frame = np.asarray(canvas.buffer_rgba())[:, :, :3]
-            writer.append_data(frame)
+    with warnings.catch_warnings():
+        # imageio-ffmpeg starts ffmpeg with subprocess (fork + exec at once), which JAX warns about;
+        # the child runs no Python, so the warning does not apply.
+        warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
+        with imageio.get_writer(os.fspath(out_mp4), fps=fps, codec="libx264", quality=7,
+                                macro_block_size=16) as writer:
+            for k in idx:
+                xy, c = style.values(k)
+                dots.set_offsets(xy)
+                dots.set_array(c)
+                for patch, (corner, _) in zip(plates, style.plate_rects(float(traj.times[k]))):
+                    patch.set_xy(corner)
+                ax.set_title(f"t = {float(traj.times[k]):.3f} s", fontsize=8)
+                canvas.draw()
+                writer.append_data(np.asarray(canvas.buffer_rgba())[:, :, :3])
     return os.fspath(out_mp4)
