@@ -218,8 +218,8 @@ class Simulator:
         name = (STATE_FIELDS + ("J <= 0 (inverted)",))[q]
         p = int(first[k, q])
         where = ""
-        if isinstance(frames, dict) and "x" in frames:
-            where = f" at position {np.asarray(frames['x'][max(k - 1, 0), p]).tolist()} m (previous frame)"
+        if isinstance(frames, dict) and "x" in frames and k > 0:  # frame 0 has no recorded predecessor
+            where = f" at position {np.asarray(frames['x'][k - 1, p]).tolist()} m (previous frame)"
         raise SimulationError(
             f"simulation became non-finite at frame {k} (t = {self.plan.frame_times[k]:.6g} s, "
             f"within substeps of dt = {self.dt:.3g} s): first bad quantity '{name}' at particle {p}{where}. "

@@ -167,10 +167,11 @@ def _eq14_root(s_pre, s_y, mubar, dt, eta, m, iters=200):
 
 @pytest.mark.parametrize("dim", [2, 3])
 def test_general_m_solves_eq14_to_roundoff(dim):
-    """For m in {0.1, 0.2, 0.5, 2, 3}, eta in {0.1 .. 1e4} Pa s^m, dt in {1e-5, 1e-3} s and
+    """For m in {0.1, 0.2, 0.5, 2, 3}, eta in {0, 0.1 .. 1e4} Pa s^m, dt in {1e-5, 1e-3} s and
     s_pre / s_Y from 1 + 1e-10 to 1000, the returned s satisfies eq. 14 to round-off, lies in
-    [s_Y, s_pre], keeps the direction of dev(bbar_pre) (eq. 16) and has det(bbar_new) = 1."""
-    f, bbar, params, dt, ref = _cases(dim, M_VALUES, ETA_VALUES, seed=10 + dim)
+    [s_Y, s_pre], keeps the direction of dev(bbar_pre) (eq. 16) and has det(bbar_new) = 1.
+    eta = 0 is rate-independent plasticity: eq. 14 reduces to (s - s_Y)^(1/m) = 0, s = s_Y for any m."""
+    f, bbar, params, dt, ref = _cases(dim, M_VALUES, (0.0,) + ETA_VALUES, seed=10 + dim)
     bnew, s_new, s_rec = _run(f, bbar, params, dt)
     s_rec = s_rec * ref["tr3"]
     s_pre, s_y = ref["s_pre"], ref["s_y"]
@@ -180,26 +181,20 @@ def test_general_m_solves_eq14_to_roundoff(dim):
     root = _eq14_root(s_pre, s_y, ref["mubar"], ref["dt"], ref["eta"], ref["m"]).astype(float)
     err = np.abs(s_rec - root) / _attainable(root, bnew)
     assert err.max() <= 8.0, f"eq. 14 not solved to round-off: max error {err.max():.2f} x attainable"
-    assert np.all(s_rec >= s_y * (1 - 10 * EPS)) and np.all(s_rec <= s_pre * (1 + 10 * EPS))
+    eta0 = ref["eta"] == 0
+    assert np.all(np.abs(s_rec[eta0] - s_y[eta0]) <= 8.0 * _attainable(s_y[eta0], bnew[eta0]))
+    slack = 8.0 * _attainable(s_rec, bnew)
+    assert np.all(s_rec >= s_y - slack) and np.all(s_rec <= s_pre + slack)
     # eq. 16: only the magnitude of the deviator changes.
     dev_new = bnew - np.trace(bnew, axis1=-2, axis2=-1)[:, None, None] / 3 * np.eye(3)
     n_new = np.sqrt(np.sum(dev_new ** 2, axis=(-2, -1)))
     n_pre = s_pre / MU
-    direction_err = np.max(np.abs(dev_new / n_new[:, None, None] - ref["dev"] / n_pre[:, None, None]))
-    assert direction_err <= 1e-12
+    direction_err = np.max(np.abs(dev_new / n_new[:, None, None] - ref["dev"] / n_pre[:, None, None]), axis=(1, 2))
+    assert np.all(direction_err <= 8.0 * _attainable(s_new, bnew) / s_new)
     # det(bbar_new) = 1 up to the round-off of a 3x3 determinant of entries of size |bbar|.
     size = np.max(np.abs(bnew), axis=(-2, -1))
     det_err = np.abs(np.linalg.det(bnew) - 1.0) / size ** 3
     assert det_err.max() <= 20 * EPS, f"det(bbar_new) - 1 up to {det_err.max():.3e} |bbar|^3"
-
-
-def test_eta_zero_returns_to_yield_surface_for_any_m():
-    """eta = 0 is rate-independent plasticity: s = s_Y whatever m (eq. 14 reduces to (s - s_Y)^(1/m) = 0)."""
-    f, bbar, params, dt, ref = _cases(3, (0.1, 0.5, 1.0, 2.0, 3.0), (0.0,), seed=3)
-    bnew, _, s_rec = _run(f, bbar, params, dt)
-    s_rec = s_rec * ref["tr3"]
-    err = np.abs(s_rec - ref["s_y"]) / _attainable(ref["s_y"], bnew)
-    assert err.max() <= 8.0, f"eta = 0: |s - s_Y| up to {err.max():.2f} x attainable"
 
 
 # ------------------------------------------------------------------------------------------------
@@ -239,8 +234,8 @@ def _rate_residual(gamma, a, b, eta, m):
 
 def test_newton_iteration_budget(monkeypatch):
     """RETURN_MAP_NEWTON_ITERS suffices, with one iteration to spare: over the grid of
-    `test_rate_equation_residual_roundoff` the iteration count is lowered until the residual |h|/b
-    leaves round-off (above 1e-13, or above twice that of 40 iterations).
+    `test_rate_equation_residual_roundoff`, RETURN_MAP_NEWTON_ITERS - 1 iterations already leave the
+    residual |h|/b at round-off (<= 1e-13 and <= twice that of 40 iterations).
 
     Measured on this grid: 5 iterations reach round-off (4 leave |h|/b ~ 1e-7; Newton converges
     quadratically), 7 reach the 40-iteration value bit for bit (6 differ by <= 7e-15 relative)."""
@@ -253,11 +248,9 @@ def test_newton_iteration_budget(monkeypatch):
         return _rate_residual(np.asarray(gamma), *args).max()
 
     floor = residual(40)
-    enough = lambda k: residual(k) <= min(1e-13, 2 * floor)
-    needed = next(k for k in range(1, budget + 1) if enough(k)) if enough(budget) else None
-    print(f"Newton iterations to round-off: {needed} (budget {budget}, floor |h|/b = {floor:.2e})")
-    assert needed is not None, f"{budget} iterations do not reach round-off"
-    assert needed <= budget - 1
+    spare = residual(budget - 1)
+    print(f"|h|/b: {floor:.2e} after 40 iterations, {spare:.2e} after {budget - 1}")
+    assert spare <= min(1e-13, 2 * floor), f"{budget} Newton iterations leave no spare iteration"
 
 
 @pytest.mark.parametrize("m", [0.1, 0.3, 0.9])
@@ -291,26 +284,26 @@ def test_no_nan_just_past_yield_shear_thinning(m):
 def test_elastic_states_unchanged(dim):
     """Phi(s_pre) <= 0 accepts the elastic predictor: with f = I an elastic bbar_e comes back
     bit-identical and s_new is its stress; with a general f the result is the predictor fbar bbar fbar^T
-    (to round-off of the independent numpy product) and s_new = s_pre."""
-    n = 64
-    f, bbar = _deformations(dim, 0.2, n, seed=7)
+    (to round-off of the independent numpy product) and s_new = s_pre; the gradient of s is that of
+    mu ||dev(bbar_pre)||."""
+    f, bbar, params, dt, _ = _cases(dim, (0.4,), (3.0,), seed=7)  # the batch shape of the other tests
+    f, bbar = np.asarray(f), np.asarray(bbar)
     bpre, _, _, ndev = _predictor(bbar, f)
-    _, _, _, ndev0 = _predictor(bbar, np.broadcast_to(np.eye(dim), f.shape))
-    sigma_y = 1.001 * MU * np.maximum(ndev, ndev0) / SQRT_2_3  # just elastic, for both f
-    params = Params(mu=MU, kappa=KAPPA, sigma_y=jnp.asarray(sigma_y), eta=jnp.asarray(3.0),
-                    m=jnp.asarray(0.4), rho=RHO)
-    identity = jnp.broadcast_to(jnp.eye(dim), (n, dim, dim))
-    b_same, s_same = _return_map_jit(jnp.asarray(bbar), identity, params, 1e-3)
+    identity = np.broadcast_to(np.eye(dim), f.shape)
+    _, _, _, ndev0 = _predictor(bbar, identity)
+    # sigma_y just above the stress, for both f: elastic.
+    params = params.replace(sigma_y=jnp.asarray(1.001 * MU * np.maximum(ndev, ndev0) / SQRT_2_3))
+    b_same, s_same = _return_map_jit(jnp.asarray(bbar), jnp.asarray(identity), params, dt)
     assert np.array_equal(np.asarray(b_same), bbar), "an elastic state with f = I must come back bit for bit"
     np.testing.assert_allclose(np.asarray(s_same), MU * ndev0, rtol=1e-14)
 
-    b_el, s_el = _return_map_jit(jnp.asarray(bbar), jnp.asarray(f), params, 1e-3)
+    b_el, s_el = _return_map_jit(jnp.asarray(bbar), jnp.asarray(f), params, dt)
     np.testing.assert_allclose(np.asarray(b_el), bpre, rtol=0, atol=1e-14 * np.abs(bpre).max())
     np.testing.assert_allclose(np.asarray(s_el), MU * ndev, rtol=1e-13)
     # Elastic gradients: s = mu ||dev(bbar_pre)|| depends on mu alone (the plastic branch, unused,
     # must not leak NaN into reverse mode).
-    grad = _grad_sum_s(params, jnp.asarray(bbar), jnp.asarray(f), 1e-3)
-    np.testing.assert_allclose(float(grad.mu), np.sum(ndev), rtol=1e-12)
+    grad = _grad_sum_s(params, jnp.asarray(bbar), jnp.asarray(f), dt)
+    np.testing.assert_allclose(np.asarray(grad.mu), ndev, rtol=1e-12)
     for name in ("sigma_y", "eta", "m", "kappa", "rho"):
         assert np.all(np.asarray(getattr(grad, name)) == 0.0), name
 

@@ -10,12 +10,16 @@ import numpy as np
 import pytest
 
 import jaxfoam
-from jaxfoam import Params, Simulator, SimulationError, load_scene, simulate
+from jaxfoam import Params, SimulationError, Simulator, load_scene, wave_speed
 
 DX = 0.02  # grid spacing, m
 # A stiff foam (c = 39 m/s, ~7x the foams of the other tests) thrown fast at a frictional floor.
 STIFF = Params(mu=1e4, kappa=1e5, sigma_y=200.0, eta=20.0, m=0.5, rho=75.0)
 THROW = [2.0, -4.0]  # initial velocity, m/s
+STABLE_FRAMES = np.linspace(0.004, 0.04, 10)  # s
+# The CFL bound with the true largest speed (initial speed + free fall over the run), not the
+# Simulator's conservative default (a 1.5x margin and a fall over the domain height), m/s.
+V_BOUND = float(np.hypot(*THROW)) + 9.81 * STABLE_FRAMES[-1]
 
 
 def _scene():
@@ -27,14 +31,14 @@ def _scene():
 
 
 def _record(state, params):
-    """Per-frame record: total energy (J per metre of depth: kinetic + gravitational about y = 0 +
-    stored elastic), largest speed (m/s), lowest particle (m), extreme volume ratios J."""
+    """Per-frame record: positions (m), total energy (J per metre of depth: kinetic + gravitational
+    about y = 0 + stored elastic), largest speed (m/s), lowest particle (m), extreme volume ratios J."""
     J = jaxfoam.det(state.F)
     m = state.mass * state.active
     kinetic = 0.5 * jnp.sum(m * jnp.sum(state.v * state.v, axis=1))
     potential = 9.81 * jnp.sum(m * state.x[:, 1])
     stored = jnp.sum(state.vol0 * state.active * jaxfoam.energy_density(state.F, state.bbar_e, params))
-    return dict(energy=kinetic + potential + stored,
+    return dict(x=state.x, energy=kinetic + potential + stored,
                 speed=jnp.max(jnp.sqrt(jnp.sum(state.v * state.v, axis=1))), y_min=jnp.min(state.x[:, 1]),
                 J_min=jnp.min(J), J_max=jnp.max(J))
 
@@ -45,12 +49,9 @@ def test_stiff_fast_impact_at_cfl_bound_stays_finite():
     step makes energy; friction, plasticity and the transfers only remove it) and J stays within 30% of 1
     (kappa = 1e5 Pa against an impact pressure ~ rho c v ~ 1.3e4 Pa: measured J >= 0.84)."""
     scene = _scene()
-    frames = np.linspace(0.004, 0.04, 10)
-    # The bound with the true largest speed (initial speed + free fall over the run), not the
-    # Simulator's conservative default (which adds a 1.5x margin and a fall over the domain height).
-    v_bound = float(np.hypot(*THROW)) + 9.81 * frames[-1]
+    frames, v_bound = STABLE_FRAMES, V_BOUND
     sim = Simulator(scene, frames, STIFF, DX, max_speed=v_bound)
-    c = jaxfoam.wave_speed(STIFF)
+    c = wave_speed(STIFF)
     assert sim.dt == pytest.approx(jaxfoam.CFL * DX / (c + v_bound), rel=0.1)
     _, rec, health = sim.rollout(STIFF, observe=_record)
     sim.check(rec, health)  # raises SimulationError on any non-finite or inverted state
@@ -69,13 +70,21 @@ def test_stiff_fast_impact_at_cfl_bound_stays_finite():
     assert 0.7 < float(np.min(rec["J_min"])) and float(np.max(rec["J_max"])) < 1.3
 
 
-def test_unstable_step_raises_simulation_error():
-    """Forcing 2 substeps per 5 ms frame (CFL number c dt / dx ~ 5, far above 1) blows up; simulate
-    raises SimulationError naming the frame, its time and the first bad quantity."""
+@pytest.mark.parametrize("stretch", [4.0, 25.0])
+def test_unstable_step_raises_simulation_error(stretch):
+    """The same scene, frame count and substep count as the stable run (the compiled rollout is
+    reused), with frames `stretch` times further apart: c dt / dx = 1.04 (just past the limit: measured
+    stable at 0.78) or 6.5 (far past it). The rollout blows up and `check` (what `simulate` calls)
+    raises SimulationError naming the frame, its time and the first bad quantity, and the position
+    of the bad particle in the previous frame when there is one."""
     scene = _scene()
-    frames = np.linspace(0.005, 0.1, 20)
+    stable = Simulator(scene, STABLE_FRAMES, STIFF, DX, max_speed=V_BOUND)
+    frames = stretch * STABLE_FRAMES
+    sim = Simulator(scene, frames, STIFF, DX, substeps=stable.substeps)
+    assert wave_speed(STIFF) * sim.dt / DX > 1.0
+    _, rec, health = sim.rollout(STIFF, observe=_record)
     with pytest.raises(SimulationError) as info:
-        simulate(scene, STIFF, frames, DX, substeps=2)
+        sim.check(rec, health)
     msg = str(info.value)
     print(msg)
     k = re.search(r"frame (\d+)", msg)
@@ -83,3 +92,6 @@ def test_unstable_step_raises_simulation_error():
     t = re.search(r"t = ([0-9.e+-]+) s", msg)
     assert t is not None and float(t.group(1)) == pytest.approx(frames[int(k.group(1))], rel=1e-5), msg
     assert re.search(r"quantity '(x|v|C|F|bbar_e|J <= 0 \(inverted\))'", msg), msg
+    if int(k.group(1)) > 0:
+        pos = re.search(r"at position \[([^\]]+)\] m \(previous frame\)", msg)
+        assert pos is not None and np.all(np.isfinite([float(v) for v in pos.group(1).split(",")])), msg
