@@ -203,6 +203,8 @@ class Simulator:
         state0 = self.state0 if state0 is None else state0
         scene = self.scene if scene is None else scene
         params = params.astype(self.dtype)
+        # The scene's data leaves (gravity, plate motion) follow the simulation's precision.
+        scene = jax.tree_util.tree_map(lambda a: jnp.asarray(a, self.dtype), scene)
         return _rollout_jit(state0, params, scene, jnp.asarray(self.plan.frame_times, self.dtype),
                             jnp.asarray(self.plan.frame_dts, self.dtype), self.grid, self.plan.substeps,
                             observe, checkpoint, self.resample, self.fracture, self.colliders)
