@@ -25,7 +25,6 @@ elastic moduli: mu 30% higher moves it by 0.025 dx rms only; test_elastic covers
 Checks: the slab's z-motion is mirror-symmetric about z = W/2 to round-off and only inward (the walls
 never pull); the jittered run (symmetry broken, walls doing real work) stays inside the slab.
 """
-import jax.numpy as jnp
 import numpy as np
 
 from jaxfoam import Params, Simulator, init_state, load_scene, make_state
@@ -53,7 +52,6 @@ def _scene(dim):
 def _extrude(state2, z):
     """3D state from a 2D one: particle p of layer k at (x_p, y_p, z[k, p]); volume and mass per layer
     V2 W / LAYERS (m^3) and m2 W / LAYERS (kg) (2D volumes are m^2 and masses kg per metre of depth)."""
-    n = state2.capacity
     x2 = np.asarray(state2.x)
     x3 = np.concatenate([np.column_stack([x2, z[k]]) for k in range(LAYERS)])
     scale = DEPTH / LAYERS
