@@ -289,10 +289,12 @@ def build_parser() -> argparse.ArgumentParser:
     add_simulate_parser(sub)
     add_render_parser(sub)
     add_demo_parser(sub)
+    from .calibrate import add_fit_parser
     from .synth import add_synth_parser
     from .track import add_track_parser
     add_synth_parser(sub)
     add_track_parser(sub)
+    add_fit_parser(sub)
     return parser
 
 
