@@ -46,7 +46,7 @@ WIDTH = 0.1                 # channel gap W, m
 PLUG_FRACTION = 0.3         # x_p / (W/2): sets the driving G = tau_y / (0.3 W/2)
 COLUMN_LENGTH = 10.0        # column length / W: the middle section is 4.5 W from the free ends
 FALL_ROOM = 0.05            # m of empty channel below the column (it falls ~1.5 cm in the run)
-RUN_TIME = 0.5              # s: > 20 elastic-viscous times eta_eff/mu (0.02 s), 6 momentum times (0.08 s)
+RUN_TIME = 0.3              # s: > 10 elastic-viscous times eta_eff/mu (0.02 s), 4 momentum times (0.08 s)
 FRAMES = 20                 # frames recorded; the last half is averaged
 CFL = 0.3                   # jaxfoam.CFL
 PPC = 4
@@ -131,15 +131,17 @@ def initial_state(scene, dx):
                       bbar_e=jnp.asarray(np.where(active[:, None, None], b, np.eye(3)[None])))
 
 
-def run(res: int):
-    """One resolution. Returns dict(res, dx, error series, errors against u(x; G) and u(x; G_eff), ...)."""
+def run(res: int, cfl: float = CFL):
+    """One resolution W/dx and CFL number (dt = cfl dx / (c + 2 u_max)).
+
+    Returns dict(res, cfl, dx, error series, errors against u(x; G) and u(x; G_eff), plug speed, ...)."""
     scene, dx, (y0, y1) = channel_scene(res)
     grid = jaxfoam.make_grid(scene, dx)
     st = initial_state(scene, dx)
     G, _ = driving()
     u_ref = float(profile_exact(0.0))
     c = jaxfoam.wave_speed(PARAMS)
-    substeps = int(math.ceil(RUN_TIME / FRAMES / (CFL * dx / (c + 2 * u_ref))))
+    substeps = int(math.ceil(RUN_TIME / FRAMES / (cfl * dx / (c + 2 * u_ref))))
     dt = RUN_TIME / FRAMES / substeps
     ymid = 0.5 * (y0 + y1)
     section = np.asarray(st.active) & (np.abs(np.asarray(st.x[:, 1]) - ymid) < WIDTH / 2)
@@ -158,7 +160,7 @@ def run(res: int):
     g_eff = float(np.mean([np.polyfit(x[k], txy[k], 1)[0] for k in range(FRAMES)[last]]))
     err_eff = np.sqrt(np.mean((v[last] - profile_exact(x[last], g_eff)) ** 2, axis=1)) / u_ref
     plug = np.abs(x[last]) < 0.5 * PLUG_FRACTION * WIDTH / 2
-    return dict(res=res, dx=dx, err_series=err, err=float(err[last].mean()), err_eff=float(err_eff.mean()),
+    return dict(res=res, cfl=cfl, dx=dx, err_series=err, err=float(err[last].mean()), err_eff=float(err_eff.mean()),
                 g_eff=g_eff / G, x=x[-1], v=v[last].mean(axis=0), plug=float(np.mean(v[last][plug])),
                 plug_eff=float(profile_exact(0.0, g_eff)),
                 particles=int(st.active.sum()), steps=substeps * FRAMES, seconds=tm.seconds)
@@ -166,14 +168,18 @@ def run(res: int):
 
 def main(argv=None):
     args = C.parse_args(__doc__, argv)
-    resolutions = (8, 16) if args.quick else (8, 16, 32)
+    if args.quick:
+        plan = [(8, 0.3), (16, 0.3), (8, 0.1)]
+    else:
+        plan = [(8, 0.3), (16, 0.3), (32, 0.3), (8, 0.05), (8, 0.1), (8, 0.2), (8, 0.5), (16, 0.1), (16, 0.05)]
     runs = []
-    for res in resolutions:
-        r = run(res)
-        print(f"W/dx={res}: rms error {r['err']:.4g} (G), {r['err_eff']:.4g} (G_eff = {r['g_eff']:.4f} G) of u_max, "
-              f"plug {r['plug']:.5g} m/s ({r['seconds']:.0f} s)")
+    for res, cfl in plan:
+        r = run(res, cfl)
+        print(f"W/dx={res} CFL={cfl}: rms error {r['err']:.4g} (G), {r['err_eff']:.4g} (G_eff = {r['g_eff']:.4f} G) "
+              f"of u_max, plug {r['plug']:.5g} m/s ({r['seconds']:.0f} s)", flush=True)
         runs.append(r)
     u_max = float(profile_exact(0.0))
+    default = [r for r in runs if r["cfl"] == CFL]
 
     import matplotlib
     matplotlib.use("Agg")
@@ -184,27 +190,31 @@ def main(argv=None):
     ax.plot(xs * 100, profile_exact(xs) * 100, "k-", lw=2, label="analytic HB plug flow (finite-strain flow curve)")
     ax.plot(xs * 100, profile_rigid(xs) * 100, "k:", label="closed form, small elastic strain")
     for k, r in enumerate(runs):
-        o = np.argsort(r["x"])
-        ax.plot(r["x"][o] * 100, r["v"][o] * 100, ".", ms=2, color=f"C{k}", label=f"MPM particles, W/dx={r['res']}")
+        if r["cfl"] == CFL or r is runs[-1]:
+            o = np.argsort(r["x"])
+            ax.plot(r["x"][o] * 100, r["v"][o] * 100, ".", ms=2, color=f"C{k}",
+                    label=f"MPM particles, W/dx={r['res']}, CFL={r['cfl']}")
     ax.axvspan(-PLUG_FRACTION * WIDTH / 2 * 100, PLUG_FRACTION * WIDTH / 2 * 100, color="0.9", label="plug")
     ax.set_xlabel("x (cm)")
     ax.set_ylabel("downward speed (cm/s)")
-    ax.set_title("Steady channel flow profile")
+    ax.set_title("Steady channel flow profile (middle section)")
     ax.legend(fontsize=7)
     ax = axes[1]
-    for k, r in enumerate(runs):
-        ax.semilogy(np.linspace(RUN_TIME / FRAMES, RUN_TIME, FRAMES), r["err_series"], "-o", ms=3, color=f"C{k}",
-                    label=f"W/dx={r['res']}")
-    ax.set_xlabel("time (s)")
-    ax.set_ylabel("RMS(v - u) / u_max, middle section")
-    ax.set_title("Approach to the steady profile")
+    for k, res in enumerate(sorted({r["res"] for r in runs})):
+        rr = sorted([r for r in runs if r["res"] == res], key=lambda r: r["cfl"])
+        ax.plot([r["cfl"] for r in rr], [r["plug"] / u_max for r in rr], "-o", color=f"C{k}", label=f"W/dx={res}")
+    ax.axhline(1.0, color="k", lw=1)
+    ax.set_xlabel("CFL number (dt = CFL dx / (c + 2 u_max))")
+    ax.set_ylabel("MPM plug speed / analytic")
+    ax.set_title("Plug speed against time step")
     ax.legend(fontsize=8)
     fig.tight_layout()
     C.save_fig(fig, NAME, args.quick)
 
     G, g = driving()
-    ords = C.orders([r["dx"] for r in runs], [r["err"] for r in runs])
-    ords_eff = C.orders([r["dx"] for r in runs], [r["err_eff"] for r in runs])
+    ords = C.orders([r["dx"] for r in default], [r["err"] for r in default])
+    ords_eff = C.orders([r["dx"] for r in default], [r["err_eff"] for r in default])
+    order_of = {id(r): (o, oe) for r, o, oe in zip(default, ords, ords_eff)}
     body = (f"Gap W = {WIDTH} m, G = rho g = {G:.4g} N/m^3 (g = {g:.4g} m/s^2), tau_y = sigma_y/sqrt(3) = "
             f"{float(PARAMS.sigma_y) / math.sqrt(3):.4g} Pa, plug half-width x_p = {PLUG_FRACTION} W/2; "
             f"mu = {float(PARAMS.mu):g} Pa, kappa = {float(PARAMS.kappa):g} Pa, eta = {float(PARAMS.eta):g} Pa s^m, "
@@ -213,13 +223,12 @@ def main(argv=None):
             f"{float(profile_rigid(0.0)):.5g} m/s).\n\n"
             "Errors are RMS(v - u)/u_max over the middle section, averaged over the last half of the frames: "
             "against u(x; G = rho g), and against u(x; G_eff) with G_eff the measured slope of tau_xy(x) in the "
-            "section (G_eff != G is the share of the weight that the column's free ends pass to the middle).\n\n"
-            + C.md_table(["W/dx", "dx m", "particles", "steps", "error vs u(G)", "order", "G_eff/G",
-                          "error vs u(G_eff)", "order", "plug m/s", "plug / u_max(G)", "plug / u_max(G_eff)",
-                          "wall s"],
-                         [[r["res"], r["dx"], r["particles"], r["steps"], r["err"], o, r["g_eff"], r["err_eff"], oe,
-                           r["plug"], r["plug"] / u_max, r["plug"] / r["plug_eff"], r["seconds"]]
-                          for r, o, oe in zip(runs, ords, ords_eff)]))
+            "section. Orders are between successive resolutions at the default CFL = 0.3.\n\n"
+            + C.md_table(["W/dx", "CFL", "dx m", "particles", "steps", "error vs u(G)", "order", "G_eff/G",
+                          "error vs u(G_eff)", "order", "plug / u_max(G)", "plug / u_max(G_eff)", "wall s"],
+                         [[r["res"], r["cfl"], r["dx"], r["particles"], r["steps"], r["err"],
+                           order_of.get(id(r), ("", ""))[0], r["g_eff"], r["err_eff"], order_of.get(id(r), ("", ""))[1],
+                           r["plug"] / u_max, r["plug"] / r["plug_eff"], r["seconds"]] for r in runs]))
     C.write_md(NAME, args.quick, "Poiseuille (gravity-driven channel) flow of the HB foam", body)
 
 
