@@ -169,7 +169,9 @@ def _hb_rate_jvp(primals, tangents):
     denom = m * P + Q
     denom = jnp.where(yielding & (denom > 0), denom, 1.0)
     num = gm * deta + P * jnp.log(g) * dm + g * da - db
-    dgamma = jnp.where(yielding, -g * num / denom, 0.0)
+    # gamma / denom = 1 / (m eta gamma^(m-1) + a) <= 1 / a first: the product gamma * num would
+    # underflow for tiny gamma (forward mode gave 0 where reverse mode gave the right value).
+    dgamma = jnp.where(yielding, -(g / denom) * num, 0.0)
     return gamma, dgamma
 
 

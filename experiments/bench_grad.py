@@ -1,0 +1,218 @@
+"""Benchmark: cost of gradients of a 2D hanging-plate rollout, as ratios to the forward run.
+
+For the 2D hanging plate (experiments/scenes/hanging_plate_2d.json) at two grid spacings, three
+jit-compiled calls at the same parameters (shaving cream: mu 200 Pa, sigma_y 20 Pa, eta 5 Pa s^m,
+m 0.5) over FRAMES frames (FRAME_DT s apart, CFL substeps in between), float64:
+  forward  the rollout and the per-frame mean foam height (T,), m;
+  reverse  value and gradient of the mean over frames of that height w.r.t. (mu, sigma_y, eta, m),
+           reverse mode through the per-frame checkpoints (`observable_jacobian(mode="rev")`);
+  jacfwd   the (T, 4) Jacobian of the per-frame heights, forward mode (`mode="fwd"`);
+  reverse, no checkpoint (coarse grid only): the same gradient with the plain scan tape, as a
+           reference for what checkpointing saves.
+Time: one fresh process per grid spacing compiles all calls, then runs REPEATS rounds with the
+calls interleaved (so machine load hits them alike); medians are reported, and ratios of medians.
+Memory: every (grid, call) in its own fresh process: compile, one warm-up call, then the peak
+resident set is reset (Linux /proc/self/clear_refs = 5) and the working memory of one more call is
+VmHWM - VmRSS(before the call) from /proc/self/status; the process's ru_maxrss (compilation
+included) is listed too.
+
+Writes experiments/bench_grad.md (or bench_grad_quick.md with --quick) next to this script.
+Usage: python experiments/bench_grad.py [--quick]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+SCENE = os.path.join(HERE, "scenes", "hanging_plate_2d.json")
+# Shaving-cream parameters (Pa, Pa, Pa s^m, -): mid-range of the values the fits expect.
+PARAMS = dict(mu=200.0, sigma_y=20.0, eta=5.0, m=0.5)
+FRAME_DT = 0.01  # s between frames (a 100 fps camera)
+# Goals of the gradient issue: reverse <= 4x forward time, jacfwd(4) <= 6x, gradient memory <= 3x.
+GOALS = {"reverse": (4.0, 3.0), "jacfwd": (6.0, None)}
+FULL = dict(dxs=(0.005, 0.0025), frames=10, repeats=3)
+QUICK = dict(dxs=(0.01,), frames=3, repeats=2)
+MODES = ("forward", "reverse", "jacfwd", "reverse_nockpt")
+
+
+def _build(dx, frames):
+    """Simulator, params and the three jitted calls for one grid spacing."""
+    import jax
+    import jax.numpy as jnp
+
+    import jaxfoam as jf
+    from jaxfoam._jacobian import make_observable_jacobian
+
+    scene = jf.load_scene(SCENE)
+    params = jf.Params(kappa=scene.kappa, rho=scene.density, **PARAMS)
+    sim = jf.Simulator(scene, [FRAME_DT * (k + 1) for k in range(frames)], params, dx=dx)
+
+    def heights(fr):
+        """Mean foam height per frame, m, (T,)."""
+        w = fr["active"].astype(fr["x"].dtype)
+        return jnp.sum(fr["x"][:, :, 1] * w, axis=1) / jnp.sum(w, axis=1)
+
+    def loss(fr):
+        return jnp.mean(heights(fr))
+
+    fwd = jax.jit(lambda p: heights(sim.rollout(p)[1]))
+    calls = {
+        "forward": lambda p: fwd(p),
+        "reverse": make_observable_jacobian(sim, loss, mode="rev"),
+        "jacfwd": make_observable_jacobian(sim, heights, mode="fwd"),
+        "reverse_nockpt": make_observable_jacobian(sim, loss, mode="rev", checkpoint=False),
+    }
+    return sim, params, calls
+
+
+def _block(out):
+    import jax
+    return jax.block_until_ready(out)
+
+
+def _status_kb(field):
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith(field + ":"):
+                return int(line.split()[1])
+    raise RuntimeError(f"{field} not in /proc/self/status")
+
+
+def worker_time(dx, frames, repeats, modes):
+    sim, params, calls = _build(dx, frames)
+    compile_s = {}
+    for m in modes:
+        t0 = time.perf_counter()
+        _block(calls[m](params))
+        compile_s[m] = time.perf_counter() - t0
+    times = {m: [] for m in modes}
+    for _ in range(repeats):
+        for m in modes:
+            t0 = time.perf_counter()
+            _block(calls[m](params))
+            times[m].append(time.perf_counter() - t0)
+    n = int(sim.state0.active.sum())
+    return dict(dx=dx, particles=n, substeps=sim.total_substeps, frames=frames, dt=sim.dt,
+                compile_s=compile_s, times=times)
+
+
+def worker_memory(dx, frames, mode):
+    import gc
+    sim, params, calls = _build(dx, frames)
+    _block(calls[mode](params))  # compile and warm up
+    gc.collect()
+    with open("/proc/self/clear_refs", "w") as fh:
+        fh.write("5")  # reset VmHWM to the current resident set
+    rss0 = _status_kb("VmRSS")
+    out = _block(calls[mode](params))
+    hwm = _status_kb("VmHWM")
+    del out
+    return dict(dx=dx, mode=mode, rss_before_mb=rss0 / 1024, hwm_mb=hwm / 1024, peak_mb=(hwm - rss0) / 1024,
+                maxrss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+
+
+def _run_worker(args, cache_dir):
+    cmd = [sys.executable, os.path.abspath(__file__), "--worker"] + [str(a) for a in args]
+    # The timing process compiles first and fills a persistent cache private to this benchmark run;
+    # the memory processes load from it instead of compiling again (compile time is not measured there).
+    env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=cache_dir, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
+               JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="0")
+    res = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    if res.returncode != 0:
+        raise RuntimeError(f"worker {args} failed:\n{res.stderr[-3000:]}")
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def _modes_for(dx, dxs):
+    # The plain-scan tape only on the coarse grid: on the fine grid it needs gigabytes.
+    return MODES if dx == max(dxs) else MODES[:3]
+
+
+def _table(time_rows, mem_rows):
+    lines = ["| dx (m) | particles | substeps | call | time median (s) | time / forward | "
+             "working memory (MB) | memory / forward | process max RSS (MB) | compile (s) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    verdicts = []
+    for tr in time_rows:
+        dx = tr["dx"]
+        med = {m: statistics.median(v) for m, v in tr["times"].items()}
+        mem = {r["mode"]: r for r in mem_rows if r["dx"] == dx}
+        for m in med:
+            tratio = med[m] / med["forward"]
+            mratio = mem[m]["peak_mb"] / mem["forward"]["peak_mb"] if m in mem else float("nan")
+            lines.append(f"| {dx:g} | {tr['particles']} | {tr['substeps']} | {m} | {med[m]:.3f} | "
+                         f"{tratio:.2f} | {mem[m]['peak_mb']:.1f} | {mratio:.2f} | {mem[m]['maxrss_mb']:.0f} | "
+                         f"{tr['compile_s'][m]:.1f} |")
+            if m in GOALS:
+                tg, mg = GOALS[m]
+                ok_t = tratio <= tg
+                ok_m = True if mg is None else mratio <= mg
+                verdicts.append(f"- dx {dx:g} m, {m}: time {tratio:.2f}x forward (goal <= {tg:g}x: "
+                                f"{'met' if ok_t else 'missed'})" + (
+                                    "" if mg is None else f", memory {mratio:.2f}x (goal <= {mg:g}x: "
+                                                          f"{'met' if ok_m else 'missed'})"))
+    return "\n".join(lines) + "\n", "\n".join(verdicts) + "\n"
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="coarse grids, 3 frames, 2 repeats (a fast check)")
+    ap.add_argument("--worker", nargs="+", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.worker:
+        kind, rest = args.worker[0], args.worker[1:]
+        if kind == "time":
+            out = worker_time(float(rest[0]), int(rest[1]), int(rest[2]), rest[3].split(","))
+        else:
+            out = worker_memory(float(rest[0]), int(rest[1]), rest[2])
+        print(json.dumps(out))
+        return 0
+    cfg = QUICK if args.quick else FULL
+    t_start = time.perf_counter()
+    time_rows, mem_rows = [], []
+    cache_dir = tempfile.mkdtemp(prefix="bench_grad_cache_")
+    for dx in cfg["dxs"]:
+        modes = _modes_for(dx, cfg["dxs"])
+        print(f"dx = {dx} m: timing {', '.join(modes)} ...", flush=True)
+        time_rows.append(_run_worker(["time", dx, cfg["frames"], cfg["repeats"], ",".join(modes)], cache_dir))
+        for m in modes:
+            print(f"dx = {dx} m: memory of {m} ...", flush=True)
+            mem_rows.append(_run_worker(["memory", dx, cfg["frames"], m], cache_dir))
+    shutil.rmtree(cache_dir, ignore_errors=True)
+    table, verdicts = _table(time_rows, mem_rows)
+    import jax
+    name = "bench_grad_quick.md" if args.quick else "bench_grad.md"
+    body = (f"# Gradient cost: 2D hanging plate\n\n"
+            f"_{'quick' if args.quick else 'full'} run; regenerate with `python experiments/bench_grad.py"
+            f"{' --quick' if args.quick else ''}` ({time.perf_counter() - t_start:.0f} s). "
+            f"{platform.machine()}, {os.cpu_count()} CPU cores shared with other jobs, JAX {jax.__version__}, "
+            f"float64, {time.strftime('%Y-%m-%d')}._\n\n"
+            f"Scene `experiments/scenes/hanging_plate_2d.json`, parameters {PARAMS}, {cfg['frames']} frames "
+            f"{FRAME_DT} s apart, CFL substeps. forward = rollout + per-frame mean height (T,); reverse = "
+            f"value and gradient of its mean w.r.t. (mu, sigma_y, eta, m) through per-frame checkpoints; "
+            f"jacfwd = the (T, 4) Jacobian in forward mode; reverse_nockpt = reverse mode with the plain "
+            f"scan tape (coarse grid only). Times: medians of {cfg['repeats']} interleaved repeats in one "
+            f"process per grid. Working memory: peak resident set during one call above the resident set "
+            f"just before it (VmHWM reset through /proc/self/clear_refs), each in a fresh process; max RSS "
+            f"includes compilation.\n\n{table}\nGoals (reverse <= 4x forward time, jacfwd(4) <= 6x, "
+            f"gradient memory <= 3x):\n{verdicts}")
+    path = os.path.join(HERE, name)
+    with open(path, "w") as fh:
+        fh.write(body)
+    print(body)
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
