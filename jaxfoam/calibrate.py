@@ -21,8 +21,9 @@ differentiable renderer (`jaxfoam.silhouette`) and the optimizers (`fitting`):
 4. `calibrate(data, settings)`: the optimizer (Levenberg-Marquardt by default, or L-BFGS / Adam on
    0.5 |r|^2) from a multi-start (the centre of the starting range, then a seeded Latin hypercube),
    every iteration written to an HDF5 fit log (`resume=True` continues a killed fit), then the
-   Gauss-Newton uncertainty at the best optimum: 95% intervals, correlations and identifiability
-   notes, returned as a `FitResult`.
+   Gauss-Newton uncertainty at the best optimum (correlations, identifiability notes), widened by
+   an estimate of the discretization error of the estimate (`discretization_error`: one more rollout
+   on a finer grid), into 95% intervals, returned as a `FitResult`.
 
 The command line is `jaxfoam fit data.h5 --out fit.json` (see `add_fit_parser`).
 A fitter never reads the data's /truth: nothing here touches `Silhouettes.truth`.
@@ -79,10 +80,20 @@ FTOL = 1e-7
 XTOL = 1e-6
 DEFAULT_STARTS = 3
 DEFAULT_LEVEL = 0.95
-# Residuals whose value and Jacobian row are both exactly zero (pixels far from any foam) carry no
-# information; they are dropped before estimating the noise (they would shrink it artificially).
 # Residual autocorrelation is integrated over lags up to this many kernel supports, per axis.
 CORRELATION_WINDOW_SUPPORTS = 1.0
+# Discretization check: the residual is evaluated once more on a grid this many times finer, and the
+# shift of the estimate it implies is extrapolated to the continuum assuming first-order convergence
+# (MPM silhouettes, with grid-boundary layers of about a cell, converge at best at first order in dx).
+# Finer rather than coarser: a coarse fit is rarely in the asymptotic range, and the finer grid is
+# the side the data (video, or a finer simulation) lie on; one forward rollout at dx / sqrt(2) costs
+# about what one Jacobian column at dx costs in 2D.
+DX_CHECK_RATIO = 1.0 / math.sqrt(2.0)
+DX_CHECK_ORDER = 1.0
+# Safety factor on the extrapolated numerical error (Roache's grid convergence index, 1.25 for a
+# convergence order that is assumed rather than measured on three grids would call for 3; we take the
+# first-order assumption, itself conservative against second order, with the smaller factor).
+GCI_SAFETY = 1.25
 
 
 class CalibrationError(ValueError):
@@ -113,6 +124,8 @@ class FitSettings:
       level: confidence level of the intervals.
       dtype: "float64" or "float32".
       distance_weight, chamfer_weight: weights of the distance-field terms in the residual.
+      dx_check: estimate the numerical (discretization) error of the estimate from one more rollout with
+        grid spacing DX_CHECK_RATIO dx and widen the intervals by it (see `discretization_error`).
     """
 
     dx: float | None = None
@@ -129,6 +142,7 @@ class FitSettings:
     dtype: str = "float64"
     distance_weight: float = 1.0
     chamfer_weight: float = 1.0
+    dx_check: bool = True
 
     def validate(self) -> "FitSettings":
         if self.optimizer not in OPTIMIZERS:
@@ -201,8 +215,12 @@ class FitResult:
       params: every material parameter used, name -> value (mu Pa, sigma_y Pa, eta Pa s^m, m,
         kappa Pa, rho kg/m^3): fitted ones at the optimum, fixed and known ones as given.
       fitted: names of the fitted parameters.
-      interval: fitted name -> (lo, hi), the `level` confidence interval (physical units).
-      stderr: fitted name -> local standard error (physical units).
+      interval: fitted name -> (lo, hi), the `level` interval (physical units): the statistical
+        (Gauss-Newton) half-width and the numerical error combined in quadrature, in fitted coordinates.
+      interval_statistical: the Gauss-Newton interval alone (noise-like misfit only).
+      numerical_error: fitted name -> estimated error of the estimate from the fit's discretization,
+        physical units (GCI_SAFETY times the first-order extrapolated shift; 0 without dx_check).
+      stderr: fitted name -> local standard error (physical units), statistical.
       correlation: (p, p) correlation matrix of the fitted parameters (order of `fitted`).
       identifiable: fitted name -> whether the data determine it.
       notes: plain-language identifiability findings.
@@ -218,11 +236,14 @@ class FitResult:
         optimizer part).
       n_effective: effective number of independent residuals used for the intervals.
       uncertainty: the `fitting.Uncertainty` (None when the Jacobian was not finite).
+      residual: (n,) residual vector at the optimum (not written to JSON; `plot_overlay` uses it).
     """
 
     params: dict
     fitted: tuple
     interval: dict
+    interval_statistical: dict
+    numerical_error: dict
     stderr: dict
     correlation: np.ndarray
     identifiable: dict
@@ -240,6 +261,7 @@ class FitResult:
     wall_time: float
     n_effective: float
     uncertainty: fitting.Uncertainty | None = None
+    residual: np.ndarray | None = None
 
     def to_dict(self) -> dict:
         """JSON-able dict (infinite interval ends as "inf"/"-inf", undefined values as null)."""
@@ -261,7 +283,8 @@ class FitResult:
         return clean({
             "format": "jaxfoam-fit", "version": 1,
             "params": self.params, "fitted": list(self.fitted), "level": self.settings.get("level"),
-            "interval": self.interval, "stderr": self.stderr, "correlation": self.correlation,
+            "interval": self.interval, "interval_statistical": self.interval_statistical,
+            "numerical_error": self.numerical_error, "stderr": self.stderr, "correlation": self.correlation,
             "identifiable": self.identifiable, "notes": list(self.notes), "loss": self.loss,
             "loss_history": self.loss_history, "time_history": self.time_history, "runs": self.runs,
             "best_run": self.best_run, "reason": self.reason, "iterations": self.iterations,
@@ -276,13 +299,15 @@ class FitResult:
     def report(self) -> str:
         """A plain-text summary: values, intervals, correlations, notes."""
         pct = f"{100 * self.settings['level']:g}%"
-        lines = [f"{'parameter':<10} {'value':>11}   {pct} interval"]
+        lines = [f"{'parameter':<10} {'value':>11}   {pct} interval{'':<14} statistical part    numerical error"]
         for n in FIT_FIELDS + KNOWN_INPUTS:
             v = self.params[n]
             if n in self.fitted:
                 lo, hi = self.interval[n]
-                lines.append(f"{n:<10} {v:>11.5g}   [{lo:.4g}, {hi:.4g}]" + ("" if self.identifiable[n]
-                                                                             else "  (not identifiable)"))
+                slo, shi = self.interval_statistical[n]
+                lines.append(f"{n:<10} {v:>11.5g}   {f'[{lo:.4g}, {hi:.4g}]':<26} {f'[{slo:.4g}, {shi:.4g}]':<19} "
+                             f"{self.numerical_error[n]:.3g}" + ("" if self.identifiable[n] else
+                                                                 "  (not identifiable)"))
             else:
                 lines.append(f"{n:<10} {v:>11.5g}   (fixed)" if n in FIT_FIELDS else
                              f"{n:<10} {v:>11.5g}   (known input)")
@@ -568,6 +593,42 @@ def fit_uncertainty(problem: CalibrationProblem, z, r=None, J=None, level: float
     return unc, n_eff
 
 
+def discretization_error(problem: CalibrationProblem, z, J, ratio: float = DX_CHECK_RATIO):
+    """The numerical error of an estimate z due to the fit's grid: (error_z (p,) >= 0, shift_z (p,)).
+
+    The residual at z is evaluated once more with grid spacing `ratio` dx (same observations, pixel
+    level and seed). The Gauss-Newton step that the change of the pixel residuals implies,
+    shift = -(Jp^T Jp)^+ Jp^T (rp_other - rp), is how far the estimate moves from dx to ratio dx
+    (Jp: the pixel rows of J at dx). With theta(h) = theta_0 + C h^q (q = DX_CHECK_ORDER) the estimate
+    at dx is off the continuum one by |shift| / |ratio^q - 1|; error_z is that times GCI_SAFETY.
+    Returns infinite errors when the other rollout is not finite.
+    """
+    settings = dataclasses.replace(problem.settings, dx=problem.dx * ratio, pixel_level=problem.pixel_level)
+    other = build_problem(problem.data, settings)
+    F = len(problem.frames)
+    npix = problem.cfg.height * problem.cfg.width
+    J = np.asarray(J, np.float64)
+    p = J.shape[1]
+    rp = np.asarray(problem.residual(z), np.float64).reshape(F, -1)[:, :npix].ravel()
+    rc = np.asarray(other.residual(z), np.float64).reshape(F, -1)[:, :npix].ravel()
+    Jp = J.reshape(F, -1, p)[:, :npix].reshape(-1, p)
+    if not (np.all(np.isfinite(rc)) and np.all(np.isfinite(rp)) and np.all(np.isfinite(Jp))):
+        return np.full(p, np.inf), np.full(p, np.nan)
+    shift = np.linalg.lstsq(Jp, -(rc - rp), rcond=None)[0]
+    return GCI_SAFETY * np.abs(shift) / abs(ratio ** DX_CHECK_ORDER - 1.0), shift
+
+
+def combine_intervals(unc: fitting.Uncertainty, error_z, transform: fitting.ParameterTransform) -> np.ndarray:
+    """(p, 2) physical intervals whose half-width in fitted coordinates is the statistical half-width
+    and the numerical error combined in quadrature."""
+    z = np.asarray(unc.z, np.float64)
+    half_stat = 0.5 * (unc.interval_z[:, 1] - unc.interval_z[:, 0])
+    half = np.sqrt(np.square(half_stat) + np.square(np.asarray(error_z, np.float64)))
+    with np.errstate(invalid="ignore"):
+        ends = np.stack([np.asarray(transform.to_physical(z - half)), np.asarray(transform.to_physical(z + half))], 1)
+    return np.sort(ends, axis=1)
+
+
 # ----------------------------------------------------------------------------------------------
 # The fit
 # ----------------------------------------------------------------------------------------------
@@ -660,7 +721,9 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
         return fitting.least_squares(evaluate, x0, optimizer, with_jac=True, max_iterations=settings.iterations,
                                      ftol=FTOL, xtol=XTOL, callback=on_iteration, **kw)
 
-    fingerprint = dict(data=_data_fingerprint(data), settings=settings.to_dict(), dx=problem.dx)
+    # What the optimizer's path depends on (not the uncertainty options): a log is resumed only with these.
+    fit_settings = {k: v for k, v in settings.to_dict().items() if k not in ("dx_check", "level")}
+    fingerprint = dict(data=_data_fingerprint(data), settings=fit_settings, dx=problem.dx)
     fitlog = None
     if log is not None:
         fitlog = fitting.FitLog(log)
@@ -684,14 +747,33 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
     unc, n_eff = fit_uncertainty(problem, best.x, r, J, level=settings.level)
     params = problem.params_of(best.x)
     p = len(names)
+    numerical = {n: 0.0 for n in names}
+    dx_check = None
     if unc is not None:
-        interval = {n: tuple(float(v) for v in unc.interval[i]) for i, n in enumerate(names)}
+        stat = {n: tuple(float(v) for v in unc.interval[i]) for i, n in enumerate(names)}
+        interval = dict(stat)
         stderr = {n: float(unc.stderr_theta[i]) for i, n in enumerate(names)}
         corr = np.asarray(unc.correlation)
         identifiable = {n: n not in unc.non_identifiable for n in names}
-        notes = tuple(unc.messages)
+        notes = list(unc.messages)
+        if settings.dx_check:
+            say(f"discretization check: the residual at the optimum with dx = {problem.dx * DX_CHECK_RATIO:.4g} m")
+            err_z, shift_z = discretization_error(problem, best.x, J)
+            D = np.abs(np.asarray(tr.jacobian(jnp.asarray(best.x))))
+            both = combine_intervals(unc, err_z, tr)
+            half_stat = 0.5 * (unc.interval_z[:, 1] - unc.interval_z[:, 0])
+            for i, n in enumerate(names):
+                numerical[n] = float(D[i] * err_z[i])
+                interval[n] = tuple(float(v) for v in both[i])
+                if err_z[i] > half_stat[i]:
+                    notes.append(f"{n}: the numerical error of the dx = {problem.dx:.3g} m grid (about "
+                                 f"{numerical[n]:.3g}) exceeds the statistical uncertainty; a finer --dx narrows "
+                                 f"the interval.")
+            dx_check = dict(ratio=DX_CHECK_RATIO, order=DX_CHECK_ORDER, safety=GCI_SAFETY,
+                            shift_z=[float(v) for v in shift_z], error_z=[float(v) for v in err_z])
+        notes = tuple(notes)
     else:
-        interval = {n: (-math.inf, math.inf) for n in names}
+        stat = interval = {n: (-math.inf, math.inf) for n in names}
         stderr = {n: math.nan for n in names}
         corr = np.full((p, p), np.nan)
         identifiable = {n: False for n in names}
@@ -705,18 +787,20 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
                         if settings.ppc is None else int(settings.ppc),
                         pixel_level=problem.pixel_level, pixel_size_fit=problem.cfg.pixel_size,
                         substeps_per_frame=sim.substeps, dt=sim.dt, fitted=list(names),
-                        transforms=dict(zip(names, tr.kinds)), log=None if log is None else os.fspath(log))
+                        transforms=dict(zip(names, tr.kinds)), log=None if log is None else os.fspath(log),
+                        dx_check=dx_check)
     T, H, W = data.shape
     data_out = dict(frames=T, height=H, width=W, pixel_size=data.camera.pixel_size,
                     times=[float(t) for t in data.times], frames_used=[int(i) for i in problem.frames],
                     scene_kind=problem.scene.kind, dim=problem.scene.dim, source=data.source)
-    return FitResult(params=params, fitted=names, interval=interval, stderr=stderr, correlation=corr,
+    return FitResult(params=params, fitted=names, interval=interval, interval_statistical=stat,
+                     numerical_error=numerical, stderr=stderr, correlation=corr,
                      identifiable=identifiable, notes=notes, loss=float(best.loss),
                      loss_history=np.asarray(best.history.loss), time_history=np.asarray(best.history.time),
                      runs=runs, best_run=int(ms.best_index), reason=best.reason.value,
                      iterations=int(best.iterations), evaluations=int(best.evaluations), settings=settings_out,
                      data=data_out, wall_time=time.perf_counter() - wall0, n_effective=float(n_eff),
-                     uncertainty=unc)
+                     uncertainty=unc, residual=np.asarray(r))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -752,6 +836,22 @@ def plot_loss(result: FitResult, path) -> None:
     plt.close(fig)
 
 
+def fitted_occupancy(problem: CalibrationProblem, result: FitResult) -> np.ndarray:
+    """The simulated soft silhouettes (F, H, W) at the optimum, as the loss saw them.
+
+    Read back from the stored residual (pixel residual = sqrt(w / sum w) (O - M) / sqrt(F)), so no
+    rollout is needed; NaN where the weight is 0 (not compared). Falls back to a rollout without it.
+    """
+    if result.residual is None:
+        return problem.render({n: result.params[n] for n in problem.transform.names})
+    F = len(problem.frames)
+    w = np.asarray(problem.weights, np.float64)
+    scale = np.sqrt(w / np.maximum(w.sum(axis=(1, 2), keepdims=True), 1e-12)) / math.sqrt(F)
+    img = problem.pixel_images(result.residual)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(w > 0, problem.masks + img / np.where(w > 0, scale, 1.0), np.nan)
+
+
 def plot_overlay(problem: CalibrationProblem, result: FitResult, path, n_panels: int = 4) -> None:
     """Observed masks (grey) with the simulated silhouette at the fitted parameters (red contour at
     occupancy 1/2) for up to `n_panels` frames spread over the fit; weight-0 pixels hatched blue."""
@@ -760,8 +860,7 @@ def plot_overlay(problem: CalibrationProblem, result: FitResult, path, n_panels:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    theta = {n: result.params[n] for n in problem.transform.names}
-    occ = problem.render(theta)
+    occ = fitted_occupancy(problem, result)
     F = occ.shape[0]
     picks = np.unique(np.round(np.linspace(0, F - 1, min(n_panels, F))).astype(int))
     H, W = problem.cfg.shape
@@ -861,6 +960,8 @@ def add_fit_parser(subparsers) -> argparse.ArgumentParser:
     ap.add_argument("--dtype", choices=("float32", "float64"), default="float64")
     ap.add_argument("--log", default=None, help="fit log path (default <out>.fitlog.h5 beside the result)")
     ap.add_argument("--resume", action="store_true", help="continue the fit recorded in the fit log")
+    ap.add_argument("--no-dx-check", action="store_true",
+                    help="skip the discretization check (intervals then hold the statistical part only)")
     ap.add_argument("--no-plots", action="store_true", help="skip the pictures")
     ap.set_defaults(func=run_fit)
     return ap
@@ -870,7 +971,8 @@ def run_fit(args) -> int:
     """Run the `fit` subcommand from parsed arguments; returns the exit status."""
     settings = FitSettings(dx=args.dx, ppc=args.ppc, optimizer=args.optimizer, fixed=parse_fixed(args.fix),
                            bounds=parse_bounds(args.bounds), starts=args.starts, max_iter=args.max_iter,
-                           seed=args.seed, pixel_level=args.pixel_level, dtype=args.dtype).validate()
+                           seed=args.seed, pixel_level=args.pixel_level, dtype=args.dtype,
+                           dx_check=not args.no_dx_check).validate()
     out = Path(args.out)
     log = Path(args.log) if args.log else default_log_path(out)
     if not args.resume and log.exists():
