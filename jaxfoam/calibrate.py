@@ -810,6 +810,7 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
 def plot_loss(result: FitResult, path) -> None:
     """Loss against iteration for every start (the best one bold), log scale; PNG at `path`."""
     import matplotlib
+    import matplotlib.ticker
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -827,6 +828,7 @@ def plot_loss(result: FitResult, path) -> None:
         ax.semilogy(np.arange(len(h)), np.maximum(h, 1e-300), "-o" if best else "-", lw=2 if best else 1,
                     ms=3, alpha=1 if best else 0.6, label=f"start {i + 1}" + (" (best)" if best else ""))
     ax.set_xlabel("iteration")
+    ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))
     ax.set_ylabel("loss 0.5 |r|^2")
     ax.set_title(f"{result.settings['optimizer']} fit: loss per iteration")
     ax.grid(True, which="both", alpha=0.3)
