@@ -13,7 +13,10 @@ the finest resolution affordable here (REF_CELLS cells, CFL REF_CFL):
 
 Wall time is the rollout alone (compiled ahead of time, compile excluded), on the shared 2-core machine.
 The 3D point runs the scene's 3D version (a slab of finite depth) and is compared with the 2D reference:
-its error is the plane-strain modelling error for that geometry, not a discretization error.
+its error is the plane-strain modelling error for that geometry, not a discretization error. The kappa
+points change the model too (bulk modulus 1000 and 10000 Pa instead of the scene's 3000 Pa): their error
+is how much the answer depends on compressibility; the volume error max over frames of mean |J - 1| is
+listed for every run.
 
 Usage: python -m experiments pareto [--quick]. Writes experiments/results/pareto[_quick].png/.md.
 """
@@ -38,7 +41,7 @@ SCENES = Path(__file__).resolve().parent / "scenes"
 FOAM = dict(mu=200.0, sigma_y=40.0, eta=10.0, m=0.5)
 DURATION = {"hanging_plate": 1.0, "drop": 0.5}   # simulated time, s (half in --quick)
 FRAMES = 10
-BASE = dict(cells=64, ppc=None, cfl=0.3, dtype="float64", dim=2)  # the CLI default discretization
+BASE = dict(cells=64, ppc=None, cfl=0.3, dtype="float64", dim=2, kappa=None)  # the CLI default discretization
 REF_CELLS, REF_CFL = 96, 0.15     # reference: the finest resolution affordable on 2 shared cores
 PIXEL = 0.002                     # silhouette pixel, m
 STRESS_CELL = 0.01                # stress comparison cell, m
@@ -50,20 +53,24 @@ def load(name: str, dim: int):
     return spec, jaxfoam.load_scene(spec)
 
 
-def simulate(name: str, cells: int, ppc, cfl: float, dtype: str, dim: int, duration: float):
-    """One run. Returns dict(frames x (T, N, 2 projected), s (T, N), active (T, N), seconds, particles, steps, dx)."""
+def simulate(name: str, cells: int, ppc, cfl: float, dtype: str, dim: int, duration: float, kappa=None):
+    """One run (kappa Pa: the bulk modulus, default the scene's).
+
+    Returns dict(x (T, N, 2) projected positions m, s (T, N) Pa, active (T, N), volume error max over frames of
+    mean |J - 1|, seconds, particles, steps, dx)."""
     spec, scene = load(name, dim)
     width = scene.domain_max[0] - scene.domain_min[0]
     dx = width / cells
     dt_type = jnp.float64 if dtype == "float64" else jnp.float32
     if dtype == "float32":
         scene = jaxfoam.load_scene(spec, dtype=jnp.float32)
-    params = jaxfoam.Params(kappa=scene.kappa, rho=scene.density, **FOAM)
+    params = jaxfoam.Params(kappa=scene.kappa if kappa is None else kappa, rho=scene.density, **FOAM)
     times = np.linspace(duration / FRAMES, duration, FRAMES)
     sim = jaxfoam.Simulator(scene, times, params, dx, ppc, dtype=dt_type, cfl=cfl)
 
     def observe(s, p):
-        return dict(x=s.x[:, :2], s=jaxfoam.deviatoric_stress_norm(s.bbar_e, p), active=s.active)
+        return dict(x=s.x[:, :2], s=jaxfoam.deviatoric_stress_norm(s.bbar_e, p), active=s.active,
+                    dJ=jnp.sum(jnp.where(s.active, jnp.abs(jaxfoam.det(s.F) - 1.0), 0.0)) / jnp.sum(s.active))
 
     f = jax.jit(functools.partial(C.rollout, grid=sim.grid, n_frames=FRAMES, substeps=sim.substeps, observe=observe))
     args = (sim.state0, params.astype(dt_type), scene, jnp.asarray(sim.dt, dt_type))
@@ -74,6 +81,7 @@ def simulate(name: str, cells: int, ppc, cfl: float, dtype: str, dim: int, durat
     fr = jax.device_get(fr)
     n_ppc = DEFAULT_PPC[dim] if ppc is None else ppc
     return dict(x=fr["x"].astype(np.float64), s=fr["s"].astype(np.float64), active=fr["active"], seconds=tm.seconds,
+                volume_error=float(np.max(fr["dJ"])),
                 particles=int(np.asarray(sim.state0.active).sum()), steps=sim.total_substeps, dx=dx,
                 spacing=dx / n_ppc ** (1.0 / dim), scene=scene)
 
@@ -116,6 +124,7 @@ def variants(quick: bool):
     return [("base (64 cells, ppc 4, CFL 0.3, f64)", {}), ("32 cells", dict(cells=32)), ("48 cells", dict(cells=48)),
             ("ppc 1", dict(ppc=1)), ("ppc 9", dict(ppc=9)), ("CFL 0.15", dict(cfl=0.15)), ("CFL 0.6", dict(cfl=0.6)),
             ("CFL 0.9", dict(cfl=0.9)), ("float32", dict(dtype="float32")), ("32 cells, CFL 0.6", dict(cells=32, cfl=0.6)),
+            ("kappa 1000 Pa", dict(kappa=1000.0)), ("kappa 10000 Pa", dict(kappa=1e4)),
             ("3D slab, 32 cells", dict(dim=3, cells=32))]
 
 
@@ -132,16 +141,17 @@ def study(name: str, quick: bool):
     rows = []
     for label, knobs in variants(quick):
         cfg = dict(BASE, **knobs)
-        run = simulate(name, cfg["cells"], cfg["ppc"], cfg["cfl"], cfg["dtype"], cfg["dim"], duration)
+        run = simulate(name, cfg["cells"], cfg["ppc"], cfg["cfl"], cfg["dtype"], cfg["dim"], duration, cfg["kappa"])
         if not np.all(np.isfinite(run["x"][run["active"]])):
-            rows.append(dict(label=label, sil=float("nan"), stress=float("nan"), **run))
+            rows.append(dict(label=label, sil=float("nan"), stress=float("nan"), seconds=run["seconds"],
+                             particles=run["particles"], steps=run["steps"], dx=run["dx"], volume_error=float("nan")))
             continue
         sil, stress = errors(run, ref, lo, hi)
         print(f"  {label}: silhouette error {sil:.4f}, stress error {stress:.4f}, {run['seconds']:.2f} s", flush=True)
         rows.append(dict(label=label, sil=sil, stress=stress, seconds=run["seconds"], particles=run["particles"],
-                         steps=run["steps"], dx=run["dx"]))
+                         steps=run["steps"], dx=run["dx"], volume_error=run["volume_error"]))
     return dict(ref=dict(cells=ref_cells, cfl=ref_cfl, particles=ref["particles"], steps=ref["steps"],
-                         seconds=ref["seconds"], duration=duration), rows=rows)
+                         seconds=ref["seconds"], duration=duration, volume_error=ref["volume_error"]), rows=rows)
 
 
 def pareto_front(rows, key):
@@ -187,12 +197,14 @@ def main(argv=None):
     for name, res in results.items():
         ref = res["ref"]
         parts.append(f"## {name}\n\nReference: {ref['cells']} cells, CFL {ref['cfl']}, {ref['particles']} particles, "
-                     f"{ref['steps']} substeps, {ref['seconds']:.1f} s.\n\n")
+                     f"{ref['steps']} substeps, {ref['seconds']:.1f} s, volume error max mean |J-1| "
+                     f"{ref['volume_error']:.3g}.\n\n")
         front_s = pareto_front(res["rows"], "sil")
         front_t = pareto_front(res["rows"], "stress")
         parts.append(C.md_table(
-            ["setting", "particles", "substeps", "wall s", "silhouette error", "stress error", "Pareto (sil / stress)"],
-            [[r["label"], r["particles"], r["steps"], r["seconds"], r["sil"], r["stress"],
+            ["setting", "particles", "substeps", "wall s", "silhouette error", "stress error", "max mean abs(J-1)",
+             "Pareto (sil / stress)"],
+            [[r["label"], r["particles"], r["steps"], r["seconds"], r["sil"], r["stress"], r["volume_error"],
               ("yes" if r["label"] in front_s else "no") + " / " + ("yes" if r["label"] in front_t else "no")]
              for r in res["rows"]]) + "\n")
     C.write_md(NAME, args.quick, "Accuracy against speed", "".join(parts))
