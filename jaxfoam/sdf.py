@@ -404,3 +404,98 @@ def material_sdf(x, active, origin, cells, dx: float, closing_radius: float = 1.
     phi = jnp.clip(phi, -far, far)
     return LatticeSDF(values=phi.reshape(-1), origin=tuple(float(o) for o in origin), h=float(h),
                       shape=shape, band=float(band))
+
+
+# ----------------------------------------------------------------------------------------------
+# Shapes and colliders from JSON-style descriptions
+# ----------------------------------------------------------------------------------------------
+
+SHAPE_KEYS = {
+    "sphere": {"type", "center", "radius"},
+    "box": {"type", "center", "half_size", "rounding"},
+    "capsule": {"type", "a", "b", "radius"},
+    "cylinder": {"type", "center", "radius", "half_height", "axis"},
+    "ellipsoid": {"type", "center", "radii"},
+    "union": {"type", "shapes"},
+    "intersection": {"type", "shapes"},
+    "difference": {"type", "base", "cut"},
+    "head_with_nose": {"type", "center", "head_radii", "nose_length", "nose_radius", "facing", "facing_sign"},
+}
+COLLIDER_KEYS = {"shape", "times", "offsets", "friction", "thickness"}
+
+
+def _tuple(v, field):
+    try:
+        out = tuple(float(a) for a in v)
+    except TypeError as exc:
+        raise ValueError(f"{field}: expected a list of numbers, got {v!r}") from exc
+    if not all(math.isfinite(a) for a in out):
+        raise ValueError(f"{field}: values must be finite, got {v!r}")
+    return out
+
+
+def _pos(v, field):
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not (v > 0 and math.isfinite(v)):
+        raise ValueError(f"{field}: expected a number > 0 (m), got {v!r}")
+    return float(v)
+
+
+def shape_from_spec(spec: dict, field: str = "shape"):
+    """An SDF shape from a dict such as {"type": "box", "center": [...], "half_size": [...]} (m).
+
+    Types: sphere (center, radius), box (center, half_size, rounding=0), capsule (a, b, radius),
+    cylinder (center, radius, half_height, axis=1), ellipsoid (center, radii), union / intersection
+    (shapes: list), difference (base, cut), head_with_nose (center, head_radii, nose_length,
+    nose_radius, facing=0, facing_sign=-1). Raises ValueError naming the field.
+    """
+    if not isinstance(spec, dict) or spec.get("type") not in SHAPE_KEYS:
+        raise ValueError(f"{field}.type: expected one of {sorted(SHAPE_KEYS)}, got "
+                         f"{spec.get('type') if isinstance(spec, dict) else spec!r}")
+    kind = spec["type"]
+    unknown = sorted(set(spec) - SHAPE_KEYS[kind])
+    if unknown:
+        raise ValueError(f"{field}: unknown key(s) {unknown} for type {kind!r}; allowed {sorted(SHAPE_KEYS[kind])}")
+    try:
+        if kind == "sphere":
+            return Sphere(_tuple(spec["center"], f"{field}.center"), _pos(spec["radius"], f"{field}.radius"))
+        if kind == "box":
+            return Box(_tuple(spec["center"], f"{field}.center"), _tuple(spec["half_size"], f"{field}.half_size"),
+                       float(spec.get("rounding", 0.0)))
+        if kind == "capsule":
+            return Capsule(_tuple(spec["a"], f"{field}.a"), _tuple(spec["b"], f"{field}.b"),
+                           _pos(spec["radius"], f"{field}.radius"))
+        if kind == "cylinder":
+            return Cylinder(_tuple(spec["center"], f"{field}.center"), _pos(spec["radius"], f"{field}.radius"),
+                            _pos(spec["half_height"], f"{field}.half_height"), int(spec.get("axis", 1)))
+        if kind == "ellipsoid":
+            return Ellipsoid(_tuple(spec["center"], f"{field}.center"), _tuple(spec["radii"], f"{field}.radii"))
+        if kind in ("union", "intersection"):
+            parts = tuple(shape_from_spec(s, f"{field}.shapes[{i}]") for i, s in enumerate(spec["shapes"]))
+            return Union(parts) if kind == "union" else Intersection(parts)
+        if kind == "difference":
+            return Difference(shape_from_spec(spec["base"], f"{field}.base"),
+                              shape_from_spec(spec["cut"], f"{field}.cut"))
+        return head_with_nose(_tuple(spec["center"], f"{field}.center"),
+                              _tuple(spec["head_radii"], f"{field}.head_radii"),
+                              _pos(spec["nose_length"], f"{field}.nose_length"),
+                              _pos(spec["nose_radius"], f"{field}.nose_radius"),
+                              int(spec.get("facing", 0)), float(spec.get("facing_sign", -1.0)))
+    except KeyError as exc:
+        raise ValueError(f"{field}.{exc.args[0]}: required for type {kind!r}") from exc
+
+
+def collider_from_spec(spec: dict, field: str = "collider") -> SDFCollider:
+    """An SDFCollider from {"shape": {...}, "times": [s...], "offsets": [[m...]...],
+    "friction": number >= 0 | "sticky", "thickness": m}. Raises ValueError naming the field."""
+    if not isinstance(spec, dict) or "shape" not in spec:
+        raise ValueError(f"{field}.shape: required")
+    unknown = sorted(set(spec) - COLLIDER_KEYS)
+    if unknown:
+        raise ValueError(f"{field}: unknown key(s) {unknown}; allowed {sorted(COLLIDER_KEYS)}")
+    shape = shape_from_spec(spec["shape"], f"{field}.shape")
+    times = _tuple(spec.get("times", [0.0]), f"{field}.times")
+    offsets = tuple(_tuple(o, f"{field}.offsets[{i}]") for i, o in enumerate(spec.get("offsets", [])))
+    try:
+        return SDFCollider(shape, times, offsets, spec.get("friction", "sticky"), float(spec.get("thickness", 0.0)))
+    except ValueError as exc:
+        raise ValueError(f"{field}: {exc}") from exc

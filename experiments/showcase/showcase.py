@@ -1,0 +1,227 @@
+"""Showcase scenes of the paper (Yue et al. 2015, section 6): load, simulate, render.
+
+A showcase file (JSON) holds:
+  name, description: text.
+  scene: a scene description for `jaxfoam.load_scene` (kind, dim, domain, plates, initial shape, ...).
+  params: mu, kappa, sigma_y, eta, m, rho (SI units; see experiments/README_materials_section.md).
+  colliders: a list of SDF colliders (`jaxfoam.sdf.collider_from_spec`): shapes the scene JSON cannot
+    express (a face, crackers with holes, a pie tin), with a prescribed translation in time.
+  resample: ResampleConfig fields, or null.  fracture: FractureConfig fields, or null.
+  cpu, gpu: run settings {dx (m), ppc, duration (s), frames, dtype}: `cpu` is what runs here on a
+    shared 2-core machine (short, coarse); `gpu` is the setting to scale up to on a GPU.
+  views: pairs of axes to draw, e.g. [[0, 1], [0, 2]] (front and top views).
+
+Usage: python experiments/showcase/showcase.py experiments/showcase/pie_throw.json [--gpu]
+Writes experiments/showcase/out/<name>/frame_###.png, <name>.mp4, <name>_sheet.png, <name>.md.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+import jaxfoam  # noqa: E402
+from jaxfoam.fracture import FractureConfig  # noqa: E402
+from jaxfoam.resample import ResampleConfig  # noqa: E402
+from jaxfoam.sdf import collider_from_spec  # noqa: E402
+
+HERE = Path(__file__).resolve().parent
+KEYS = {"name", "description", "scene", "params", "colliders", "resample", "fracture", "cpu", "gpu", "views"}
+RUN_KEYS = {"dx", "ppc", "duration", "frames", "dtype", "note"}
+# Plastic rates drawn over this many decades below the top of the colour scale (creep to splash).
+GAMMA_DECADES = 3.0
+
+
+def load_showcase(path):
+    """Parse a showcase file: returns a dict with scene, params, colliders, resample, fracture, cpu,
+    gpu, views, name, description. Raises ValueError naming the field."""
+    spec = json.loads(Path(path).read_text())
+    unknown = sorted(set(spec) - KEYS)
+    if unknown:
+        raise ValueError(f"showcase {path}: unknown key(s) {unknown}; allowed {sorted(KEYS)}")
+    for k in ("name", "scene", "params", "cpu"):
+        if k not in spec:
+            raise ValueError(f"showcase {path}: field '{k}' is required")
+    scene = jaxfoam.load_scene(spec["scene"])
+    params = jaxfoam.Params(**{k: float(v) for k, v in spec["params"].items()}).validate()
+    if abs(float(params.kappa) - scene.kappa) > 1e-9 * scene.kappa or abs(float(params.rho) - scene.density) > 1e-9:
+        raise ValueError(f"showcase {path}: params.kappa/rho must equal the scene's kappa/density")
+    colliders = tuple(collider_from_spec(c, f"colliders[{i}]") for i, c in enumerate(spec.get("colliders", [])))
+    resample = ResampleConfig(**spec["resample"]).validate(scene.dim) if spec.get("resample") is not None else None
+    fracture = FractureConfig(**spec["fracture"]).validate(scene.dim) if spec.get("fracture") is not None else None
+    for k in ("cpu", "gpu"):
+        if k in spec:
+            bad = sorted(set(spec[k]) - RUN_KEYS)
+            if bad:
+                raise ValueError(f"showcase {path}: {k}: unknown key(s) {bad}; allowed {sorted(RUN_KEYS)}")
+    return dict(name=spec["name"], description=spec.get("description", ""), scene=scene, params=params,
+                colliders=colliders, resample=resample, fracture=fracture, cpu=spec["cpu"], gpu=spec.get("gpu"),
+                views=spec.get("views", [[0, 1]]), spec=spec)
+
+
+def make_simulator(show, settings, frame_times=None):
+    """The Simulator of a showcase at the given settings (dict with dx, ppc, duration, frames, dtype)."""
+    dtype = {"float32": jnp.float32, "float64": jnp.float64}[settings.get("dtype", "float32")]
+    if frame_times is None:
+        n = int(settings["frames"])
+        frame_times = np.linspace(settings["duration"] / n, settings["duration"], n)
+    return jaxfoam.Simulator(show["scene"], frame_times, show["params"], float(settings["dx"]),
+                             ppc=settings.get("ppc"), dtype=dtype, resample=show["resample"],
+                             fracture=show["fracture"], colliders=show["colliders"])
+
+
+def observe(state, params):
+    return dict(x=state.x, gamma_dot=state.gamma_dot, active=state.active)
+
+
+# ----------------------------------------------------------------------------------------------
+# Rendering (matplotlib): particles projected on two axes, nearer ones drawn on top, coloured by
+# the plastic rate; colliders, plates and floor drawn as grey silhouettes.
+# ----------------------------------------------------------------------------------------------
+
+def _collider_silhouette(show, t, axes, lims, res=120):
+    """Boolean image (res, res) of where any collider or plate covers the view at time t."""
+    d = show["scene"].dim
+    (a, b) = axes
+    ga = np.linspace(*lims[0], res)
+    gb = np.linspace(*lims[1], res)
+    other = [k for k in range(d) if k not in axes]
+    lo, hi = np.asarray(show["scene"].domain_min), np.asarray(show["scene"].domain_max)
+    depth = [np.linspace(lo[k], hi[k], 24) for k in other]
+    mesh = np.meshgrid(ga, gb, *depth, indexing="ij")
+    pts = np.zeros(mesh[0].shape + (d,))
+    pts[..., a] = mesh[0]
+    pts[..., b] = mesh[1]
+    for i, k in enumerate(other):
+        pts[..., k] = mesh[2 + i]
+    flat = jnp.asarray(pts.reshape(-1, d))
+    hit = np.zeros(flat.shape[0], bool)
+    for c in show["colliders"]:
+        hit |= np.asarray(c.phi(flat, jnp.asarray(t, flat.dtype)) < 0)
+    for p in show["scene"].plates:
+        c = np.asarray(p.position(jnp.asarray(t)))
+        hit |= np.all(np.abs(np.asarray(flat) - c[None, :]) <= np.asarray(p.half_size)[None, :], axis=1)
+    hit = hit.reshape(pts.shape[:-1])
+    while hit.ndim > 2:
+        hit = hit.any(axis=-1)
+    return hit.T  # rows along b
+
+
+def render_frame(show, frame, t, path, lims, gmax):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    views = show["views"]
+    fig, axs = plt.subplots(1, len(views), figsize=(4.2 * len(views), 4.2), squeeze=False)
+    act = frame["active"]
+    x = frame["x"][act]
+    g = frame["gamma_dot"][act]
+    logg = np.log10(np.maximum(g, gmax * 10 ** -GAMMA_DECADES))
+    d = x.shape[1]
+    for ax, (a, b), lim in zip(axs[0], views, lims):
+        sil = _collider_silhouette(show, t, (a, b), lim)
+        ax.imshow(sil, origin="lower", extent=(*lim[0], *lim[1]), cmap="Greys", vmin=0, vmax=2.5,
+                  interpolation="nearest")
+        other = [k for k in range(d) if k not in (a, b)]
+        order = np.argsort(x[:, other[0]]) if other else np.arange(len(x))
+        ax.scatter(x[order, a], x[order, b], c=logg[order], s=3, lw=0, cmap="viridis",
+                   vmin=math.log10(gmax) - GAMMA_DECADES, vmax=math.log10(gmax))
+        if show["scene"].floor_y is not None and b == 1:
+            ax.axhline(show["scene"].floor_y, color="#8c8c8c", lw=2)
+        ax.set_xlim(*lim[0])
+        ax.set_ylim(*lim[1])
+        ax.set_aspect("equal")
+        ax.set_xlabel("xyz"[a] + " (m)")
+        ax.set_ylabel("xyz"[b] + " (m)")
+    fig.suptitle(f"{show['name']}  t = {t:.3f} s  (colour: log10 plastic rate, 1/s)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=70)
+    plt.close(fig)
+
+
+def run(path, gpu=False, out=None):
+    show = load_showcase(path)
+    settings = show["gpu"] if gpu else show["cpu"]
+    sim = make_simulator(show, settings)
+    out = Path(out) if out else HERE / "out" / (show["name"] + ("_gpu" if gpu else ""))
+    out.mkdir(parents=True, exist_ok=True)
+    n0 = int(np.sum(np.asarray(sim.state0.active)))
+    print(f"{show['name']}: {n0} points ({sim.state0.capacity} slots), {sim.total_substeps} substeps of "
+          f"{sim.dt:.3g} s, grid {sim.grid.shape}", flush=True)
+    t0 = time.perf_counter()
+    final, frames, health = sim.rollout(show["params"], observe=observe)
+    frames = jax.device_get(frames)
+    seconds = time.perf_counter() - t0
+    sim.check(frames, health)
+    times = np.asarray(sim.plan.frame_times)
+    lo, hi = np.asarray(show["scene"].domain_min), np.asarray(show["scene"].domain_max)
+    lims = [((lo[a], hi[a]), (lo[b], hi[b])) for a, b in show["views"]]
+    gmax = max(float(np.percentile(frames["gamma_dot"][frames["active"]], 99.5)), 1e-3)
+    files = []
+    for k, t in enumerate(times):
+        f = out / f"frame_{k:03d}.png"
+        render_frame(show, {key: v[k] for key, v in frames.items()}, float(t), f, lims, gmax)
+        files.append(f)
+    _sheet(files, out / f"{show['name']}_sheet.png")
+    _video(files, out / f"{show['name']}.mp4")
+    n_end = int(np.sum(frames["active"][-1]))
+    text = (f"# {show['name']}\n\n{show['description']}\n\nSettings ({'gpu' if gpu else 'cpu'}): "
+            f"{json.dumps(settings)}; {n0} points at start, {n_end} at the end; {sim.total_substeps} substeps "
+            f"of {sim.dt:.3g} s; grid {sim.grid.shape}; rollout wall time {seconds:.1f} s (compile included) on "
+            f"{'a GPU' if gpu else 'a shared 2-core CPU'}.\n\n![sheet]({show['name']}_sheet.png)\n")
+    (out / f"{show['name']}.md").write_text(text)
+    print(f"{show['name']}: {seconds:.1f} s; wrote {out}", flush=True)
+    return dict(seconds=seconds, frames=frames, sim=sim)
+
+
+def _sheet(files, path, ncols=4, n=8):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    pick = [files[i] for i in np.unique(np.linspace(0, len(files) - 1, min(n, len(files))).round().astype(int))]
+    imgs = [plt.imread(f) for f in pick]
+    nrows = int(math.ceil(len(imgs) / ncols))
+    h, w = imgs[0].shape[:2]
+    fig, axs = plt.subplots(nrows, ncols, figsize=(ncols * w / 100, nrows * h / 100), squeeze=False)
+    for ax in axs.ravel():
+        ax.axis("off")
+    for ax, im in zip(axs.ravel(), imgs):
+        ax.imshow(im)
+    fig.subplots_adjust(0, 0, 1, 1, 0.01, 0.01)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def _video(files, path, fps=10):
+    try:
+        import imageio.v2 as imageio
+    except ImportError:
+        print("imageio not installed: no video (pip install 'jaxfoam[viz]')")
+        return
+    frames = [imageio.imread(f) for f in files]
+    h = min(f.shape[0] for f in frames) // 16 * 16
+    w = min(f.shape[1] for f in frames) // 16 * 16
+    with imageio.get_writer(path, fps=fps, codec="libx264", quality=6, macro_block_size=16) as wr:
+        for f in frames:
+            wr.append_data(f[:h, :w, :3])
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description="Run and render a showcase scene.")
+    ap.add_argument("scene", help="showcase JSON file")
+    ap.add_argument("--gpu", action="store_true", help="use the file's 'gpu' settings (scale-up)")
+    ap.add_argument("--out", help="output folder (default experiments/showcase/out/<name>)")
+    args = ap.parse_args(argv)
+    run(args.scene, args.gpu, args.out)
+
+
+if __name__ == "__main__":
+    main()
