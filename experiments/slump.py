@@ -161,8 +161,8 @@ def main(argv=None):
     else:
         plan = [(2, (8, 16, 24), (0.02, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4), "slip"),
                 (2, (8, 16, 24), (0.01, 0.02), "sticky"),
-                (3, (6, 8, 10), (0.05, 0.1, 0.2, 0.3), "slip"),
-                (3, (6, 8), (0.01, 0.02), "sticky")]
+                (3, (4, 6, 8), (0.05, 0.1, 0.2, 0.3), "slip"),
+                (3, (4, 6), (0.01, 0.02), "sticky")]
     runs = []
     for dim, resolutions, tau_ps, floor in plan:
         for res in resolutions:
