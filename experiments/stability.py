@@ -21,6 +21,10 @@
    the same state; drift = RMS particle distance between the two runs / dx, and the volume ratio J error,
    against the number of substeps, for small and large kappa and dx.
 
+4. Domain walls as symmetry planes. The 2D slump column of experiments/slump.py (sticky floor,
+   tau' = 0.3, Bingham eta = 10 Pa s) simulated whole, and as its right half against the domain's slip
+   wall at x = 0 (a symmetry plane in the continuum): final height / H of both.
+
 Usage: python -m experiments stability [--quick]. Writes experiments/results/stability[_quick].png/.md.
 """
 from __future__ import annotations
@@ -232,6 +236,38 @@ def drift(kappa: float, dx: float, n_frames: int, steps_per_frame: int):
                 kappa=kappa, dx=dx, particles=len(st64.x))
 
 
+def symmetry_wall_check(res: int):
+    """Final height / H of the 2D slump column (tau' = 0.3, sticky floor): (whole column, half column
+    against the slip wall at x = 0)."""
+    from experiments import slump
+    H, R = slump.HEIGHT, slump.RADIUS
+    tau_p = 0.3
+    p = slump.BASE.replace(sigma_y=math.sqrt(3.0) * tau_p * slump.RHO * slump.G * H, eta=10.0)
+    out = []
+    for x_lo, box_lo in ((-0.3, -R), (0.0, 0.0)):
+        spec = {"kind": "drop", "dim": 2, "gravity": [0.0, -slump.G], "density": slump.RHO, "kappa": float(p.kappa),
+                "domain": {"min": [x_lo, 0.0], "max": [0.3, 1.2 * H]}, "floor": {"y": 0.0, "friction": "sticky"},
+                "initial_shape": {"type": "box", "min": [box_lo, 0.0], "max": [R, H]}}
+        scene = jaxfoam.load_scene(spec)
+        dx = H / res
+        grid = jaxfoam.make_grid(scene, dx)
+        st = jaxfoam.init_state(scene, dx, 4, rho=slump.RHO)
+        t_end, frames = 1.2, 4
+        substeps = int(math.ceil(t_end / frames / jaxfoam.stable_dt(p, dx, math.sqrt(2 * slump.G * H))))
+        dt = t_end / frames / substeps
+
+        def observe(s, p_):
+            near = (jnp.abs(s.x[:, 0]) < 0.25 * R) & s.active
+            return jnp.max(jnp.where(near, s.x[:, 1], -jnp.inf))
+
+        f = jax.jit(functools.partial(C.rollout, grid=grid, n_frames=frames, substeps=substeps, observe=observe))
+        _, top = f(st, p, scene, dt)
+        x0 = np.asarray(st.x)
+        top0 = float(np.max(x0[np.abs(x0[:, 0]) < 0.25 * R, 1]))
+        out.append(1.0 - (top0 - float(top[-1])) / H)
+    return out
+
+
 def main(argv=None):
     args = C.parse_args(__doc__, argv)
     q = args.quick
@@ -263,9 +299,13 @@ def main(argv=None):
         print(f"float32 drift kappa={kappa:g} dx={dx:g}: final {d['drift'][-1]:.3g} dx, J error {d['jerr'][-1]:.3g}",
               flush=True)
         drifts.append(d)
+    # 4
+    wall_res = 8 if q else 16
+    whole, half = symmetry_wall_check(wall_res)
+    print(f"symmetry wall: whole column {whole:.4f} H, half column against the slip wall {half:.4f} H", flush=True)
     chart(mus, ratios, cfls, ts_elastic, ts_plastic, ms, etas, solvers, drifts, q)
     table(mus, ratios, cfls, ts_elastic, ts_plastic, growth_elastic, growth_plastic, solvers, worst_default,
-          n_cases, solver_seconds, strains, dts, drifts, n_particles, q)
+          n_cases, solver_seconds, strains, dts, drifts, n_particles, q, (wall_res, whole, half))
 
 
 def _first_failure(codes, cfls):
@@ -340,7 +380,7 @@ def chart(mus, ratios, cfls, ts_elastic, ts_plastic, ms, etas, solvers, drifts, 
 
 
 def table(mus, ratios, cfls, ts_elastic, ts_plastic, growth_elastic, growth_plastic, solvers, worst_default,
-          n_cases, solver_seconds, strains, dts, drifts, n_particles, quick):
+          n_cases, solver_seconds, strains, dts, drifts, n_particles, quick, wall):
     parts = ["## 1. Time step\n\n",
              f"Free block {BLOCK} m, dx = {DX} m, {n_particles} particles, {TS_STEPS} substeps, initial speed "
              f"{V0_FRACTION} c; dt = CFL dx / (c + V0). Entry: smallest CFL that failed (non-finite or energy > "
@@ -375,6 +415,12 @@ def table(mus, ratios, cfls, ts_elastic, ts_plastic, growth_elastic, growth_plas
                      int(d["steps"][-1]), float(d["drift"][-1]), float(d["jerr"][-1])])
     parts.append(C.md_table(["kappa Pa", "dx m", "dt s", "particles", "steps", "drift / dx", "steps", "drift / dx",
                              "max J error"], rows))
+    wall_res, whole, half = wall
+    parts.append("\n## 4. Domain slip wall as a symmetry plane\n\n"
+                 f"2D slump column (experiments/slump.py geometry, tau' = 0.3, sticky floor, eta = 10 Pa s, m = 1), "
+                 f"H/dx = {wall_res}, 1.2 s:\n\n"
+                 + C.md_table(["configuration", "final height / H"],
+                              [["whole column", whole], ["right half against the slip wall at x = 0", half]]))
     return C.write_md(NAME, quick, "Stability: where methods fail", "".join(parts))
 
 
