@@ -71,9 +71,9 @@ class SceneCase:
 FULL = [SceneCase("hanging_plate_2d", 0.007, 0.8, 12), SceneCase("drop_2d", 0.007, 0.4, 12),
         SceneCase("squeeze_2d", 0.007, 1.4, 12), SceneCase("hanging_plate_3d", 0.0125, 0.6, 10)]
 QUICK = [SceneCase("hanging_plate_2d", 0.01, 0.6, 8), SceneCase("drop_2d", 0.01, 0.4, 8),
-         SceneCase("squeeze_2d", 0.01, 1.4, 8), SceneCase("hanging_plate_3d", 0.016, 0.6, 8)]
+         SceneCase("squeeze_2d", 0.01, 1.0, 8), SceneCase("hanging_plate_3d", 0.016, 0.6, 8)]
 # Budgets: starts and iterations per optimizer; the optimizer comparison runs on the same data.
-BUDGET = {True: dict(starts=1, iters={"lm": 20, "lbfgs": 30, "adam": 40}),
+BUDGET = {True: dict(starts=1, iters={"lm": 12, "lbfgs": 12, "adam": 20}),
           False: dict(starts=3, iters={"lm": 30, "lbfgs": 60, "adam": 150})}
 # Which (scene, set) pairs get the optimizer comparison (all three optimizers).
 COMPARE = {True: [("drop_2d", 0)], False: [("hanging_plate_2d", 0), ("drop_2d", 0), ("squeeze_2d", 0)]}

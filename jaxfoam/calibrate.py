@@ -38,7 +38,6 @@ import hashlib
 import json
 import math
 import os
-import sys
 import time
 from pathlib import Path
 from typing import Callable, Mapping
@@ -365,9 +364,9 @@ def _residual_and_jacobian(z, static, base, state0, scene, frame_times, frame_dt
     """(r (n,), dr/dz (n, p)) by forward mode: one jvp rollout per fitted parameter (p <= 4).
 
     Each column is `jax.jvp` along one basis vector, run in sequence by `lax.map` (one compiled
-    rollout body). Not `jax.jacfwd`: it vmaps the tangents, and the batched scatter-add of P2G it
-    produces ran 42x slower than the forward rollout on XLA:CPU (2,813 particles, 4 tangents;
-    a single jvp costs about one forward rollout), so p jvps are ~10x cheaper.
+    rollout body). Not `jax.jacfwd`: it vmaps the tangents, which ran 42x slower than the forward
+    rollout on XLA:CPU (2,813 particles, 4 tangents) where one jvp (along sigma_y) cost about one
+    forward rollout: p jvps were ~10x cheaper.
     """
 
     def fn(zz):
@@ -424,7 +423,7 @@ class CalibrationProblem:
         return _residual_jit(jnp.asarray(z, self.sim.dtype), *self._args(), self.target)
 
     def residual_and_jacobian(self, z):
-        """(r (n,), dr/dz (n, p)) from one forward-mode rollout."""
+        """(r (n,), dr/dz (n, p)) by forward mode (one jvp rollout per fitted parameter)."""
         return _residual_and_jacobian(jnp.asarray(z, self.sim.dtype), *self._args(), self.target)
 
     def loss(self, z) -> float:
