@@ -720,8 +720,9 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
         return fitting.least_squares(evaluate, x0, optimizer, with_jac=True, max_iterations=settings.iterations,
                                      ftol=FTOL, xtol=XTOL, callback=on_iteration, **kw)
 
-    # What the optimizer's path depends on (not the uncertainty options): a log is resumed only with these.
-    fit_settings = {k: v for k, v in settings.to_dict().items() if k not in ("dx_check", "level")}
+    # What the optimizer's path depends on (not the uncertainty options, nor the iteration budget, which a
+    # resumed fit may extend): a log is resumed only with these.
+    fit_settings = {k: v for k, v in settings.to_dict().items() if k not in ("dx_check", "level", "max_iter")}
     fingerprint = dict(data=_data_fingerprint(data), settings=fit_settings, dx=problem.dx)
     fitlog = None
     if log is not None:
