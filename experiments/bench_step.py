@@ -81,7 +81,10 @@ def main(argv=None):
             rows.append(r)
             print(f"{dim}D {r['dtype']}: {r['rate'] / 1e6:.2f} M particle-steps/s "
                   f"(compile {r['compile_s']:.1f} s)", flush=True)
+    load = os.getloadavg()[0]
     lines = ["# Full HB MLS-MPM step: particle-steps per second", "",
+             f"Load average when measured: {load:.1f} on {os.cpu_count()} cores (peers in shared/perf/anchors.md "
+             "were measured on an idle machine; compare only runs at similar load).", "",
              f"Machine: {platform.machine()}, {os.cpu_count()} cores; JAX {jax.__version__}; "
              f"steps per timed run: 2D {steps}, 3D {max(steps // 4, 5)}; median of {repeats}.", "",
              "| case | particles | grid | dtype | M particle-steps/s | vs Taichi toy 2D f32 (5.3 M) | vs JAX toy (same dim) | vs Taichi 3D f64 (1.4 M) | compile s |",
