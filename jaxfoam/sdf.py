@@ -354,7 +354,8 @@ def material_sdf(x, active, origin, cells, dx: float, closing_radius: float = 1.
       x: (N, d) positions, m; active: (N,) bool (inactive slots are ignored).
       origin: (d,) m and cells: (d,) ints, the box [origin, origin + cells dx] the lattice covers.
       dx: grid spacing, m.  closing_radius: R / dx (> 0).  refine: lattice points per dx (>= 1).
-      band: clamp of |phi|, m (default R + dx / refine).
+      band: clamp of |phi|, m (default 1.5 dx / refine: a narrow band, enough for the sign and the
+        distance to the surface next to it; a wider band costs a convolution per distance level).
     Returns a LatticeSDF, negative inside. Positions only steer decisions: no gradient flows through.
     """
     if closing_radius <= 0:
@@ -365,7 +366,7 @@ def material_sdf(x, active, origin, cells, dx: float, closing_radius: float = 1.
     d = x.shape[-1]
     h = dx / int(refine)
     R = closing_radius * dx
-    band = R + h if band is None else float(band)
+    band = 1.5 * h if band is None else float(band)
     shape = tuple(int(c) * int(refine) for c in cells)
     L = int(np.prod(shape))
     strides = _strides(shape)
