@@ -34,6 +34,11 @@ from ._simulate import Simulator, observe_default
 from ._state import State
 
 MODES = ("fwd", "rev")
+# XLA:CPU codegen option for the differentiated rollout: the older elemental emitters compile these
+# large jvp/transpose programs in about half the time of the default fusion emitters, and run them
+# as fast or faster (measured on the 2D hanging plate: jacfwd compile 30 -> 16 s, reverse 69 -> 39 s,
+# reverse run time -25%). Results agree to round-off. Applied on the CPU backend only.
+CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 PARAM_FIELDS = tuple(f.name for f in dataclasses.fields(Params))
 SCENE_FIELDS = ("gravity", "floor_friction")
 PLATE_FIELDS = tuple(f.name for f in dataclasses.fields(Plate) if not f.metadata.get("static"))
@@ -144,7 +149,6 @@ def make_observable_jacobian(sim: Simulator, observable: Callable, wrt=FIT_FIELD
 
     jac = jax.jacfwd if mode == "fwd" else jax.jacrev
 
-    @jax.jit
     def run(params, state0, scene):
         params = params.astype(sim.dtype)
         leaves = {k: jnp.asarray(_get(k, params, state0, scene)) for k in wrt}
@@ -153,6 +157,8 @@ def make_observable_jacobian(sim: Simulator, observable: Callable, wrt=FIT_FIELD
                 raise ValueError(f"wrt entry {k!r} is not a floating-point array (dtype {v.dtype})")
         J, (out, health) = jac(value, has_aux=True)(leaves, params, state0, scene)
         return out, J, health
+
+    run = jax.jit(run, compiler_options=CPU_COMPILER_OPTIONS if jax.default_backend() == "cpu" else None)
 
     def fn(params: Params, state0: State | None = None, scene: Scene | None = None) -> ObservableJacobian:
         params.validate()
