@@ -277,7 +277,7 @@ def report(quick: bool) -> None:
                 y, ylo, yhi = e["error"], lo - t, hi - t
             ylo, yhi = max(ylo, -2.0), min(yhi, 2.0)
             x = j + (i - (len(lm) - 1) / 2) * 0.8 / max(len(lm), 1)
-            ax.errorbar([x], [y], yerr=[[y - ylo], [yhi - y]], fmt="o" if e["identifiable"] else "s",
+            ax.errorbar([x], [y], yerr=[[max(y - ylo, 0.0)], [max(yhi - y, 0.0)]], fmt="o" if e["identifiable"] else "s",
                         color="C0" if e["inside"] else "C3", ms=4, capsize=2, lw=1)
         kind, tol = GOALS[n]
         ax.fill_between([j - 0.45, j + 0.45], -tol, tol, color="0.85", zorder=0)
@@ -329,9 +329,9 @@ def main(argv=None) -> None:
                 continue
             try:
                 run_job(c, k, opt, args.quick)
+                report(args.quick)
             except Exception as exc:  # one failed case must not stop the study; it is reported as missing
                 print(f"== {case_id(c, k, args.quick)} {opt} FAILED: {type(exc).__name__}: {exc}", flush=True)
-            report(args.quick)
     report(args.quick)
 
 

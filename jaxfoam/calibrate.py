@@ -217,8 +217,9 @@ class FitResult:
       interval: fitted name -> (lo, hi), the `level` interval (physical units): the statistical
         (Gauss-Newton) half-width and the numerical error combined in quadrature, in fitted coordinates.
       interval_statistical: the Gauss-Newton interval alone (noise-like misfit only).
-      numerical_error: fitted name -> estimated error of the estimate from the fit's discretization,
-        physical units (GCI_SAFETY times the first-order extrapolated shift; 0 without dx_check).
+      numerical_error: fitted name -> estimated error of the estimate from the fit's discretization, as
+        a half-width in physical units (GCI_SAFETY times the first-order extrapolated shift, mapped
+        through the parameter's transform; 0 without dx_check).
       stderr: fitted name -> local standard error (physical units), statistical.
       correlation: (p, p) correlation matrix of the fitted parameters (order of `fitted`).
       identifiable: fitted name -> whether the data determine it.
@@ -231,8 +232,8 @@ class FitResult:
       reason: why the best start stopped.  iterations, evaluations: of the best start.
       settings: the `FitSettings` as a dict, plus the resolved dx, pixel level and substeps.
       data: summary of the data (frames, image size, pixel size, frames used).
-      wall_time: seconds for the whole calibration (all starts, uncertainty; across resumes for the
-        optimizer part).
+      wall_time: seconds for the whole calibration: set-up, every start's optimizer time (summed over
+        resumes, from the fit log) and the uncertainty.
       n_effective: effective number of independent residuals used for the intervals.
       uncertainty: the `fitting.Uncertainty` (None when the Jacobian was not finite).
       residual: (n,) residual vector at the optimum (not written to JSON; `plot_overlay` uses it).
@@ -734,11 +735,13 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
                                    f"(start afresh without --resume, or use another log)")
         fitlog.file.attrs["calibration"] = json.dumps(fingerprint)
         fitlog.flush()
+    before = time.perf_counter() - wall0
     try:
         ms = fitting.multistart(solve, starts, log=fitlog, resume=resume, seed=settings.seed, unit=unit)
     finally:
         if fitlog is not None:
             fitlog.close()
+    after0 = time.perf_counter()
 
     best = ms.best
     r, J = best.residual, best.jacobian
@@ -759,11 +762,14 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
         if settings.dx_check:
             say(f"discretization check: the residual at the optimum with dx = {problem.dx * DX_CHECK_RATIO:.4g} m")
             err_z, shift_z = discretization_error(problem, best.x, J)
-            D = np.abs(np.asarray(tr.jacobian(jnp.asarray(best.x))))
             both = combine_intervals(unc, err_z, tr)
             half_stat = 0.5 * (unc.interval_z[:, 1] - unc.interval_z[:, 0])
+            zb = np.asarray(best.x, np.float64)
+            up = np.asarray(tr.to_physical(jnp.asarray(zb + err_z)))
+            down = np.asarray(tr.to_physical(jnp.asarray(zb - err_z)))
             for i, n in enumerate(names):
-                numerical[n] = float(D[i] * err_z[i])
+                # the numerical error as a half-width in physical units (the maps are not linear)
+                numerical[n] = float(0.5 * abs(up[i] - down[i]))
                 interval[n] = tuple(float(v) for v in both[i])
                 if err_z[i] > half_stat[i]:
                     notes.append(f"{n}: the numerical error of the dx = {problem.dx:.3g} m grid (about "
@@ -799,7 +805,8 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
                      loss_history=np.asarray(best.history.loss), time_history=np.asarray(best.history.time),
                      runs=runs, best_run=int(ms.best_index), reason=best.reason.value,
                      iterations=int(best.iterations), evaluations=int(best.evaluations), settings=settings_out,
-                     data=data_out, wall_time=time.perf_counter() - wall0, n_effective=float(n_eff),
+                     data=data_out, n_effective=float(n_eff),
+                     wall_time=before + sum(s.wall_time for s in ms.solutions) + time.perf_counter() - after0,
                      uncertainty=unc, residual=np.asarray(r))
 
 
