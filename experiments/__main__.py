@@ -1,12 +1,14 @@
 """Run the experiments: `python -m experiments all [--quick]` or `python -m experiments NAME [--quick]`.
 
 Each experiment is a module experiments/<name>.py with `main(argv)` that writes its chart and table to
-experiments/results/<name>[_quick].png/.md. `all` runs each one in its own process (a failure in one
-does not stop the others) and prints the wall time of each.
+experiments/results/<name>[_quick].png/.md. `all` runs the evidence suite (EXPERIMENTS) each in its own
+process (a failure in one does not stop the others) and prints the wall time of each; NAME may also be
+any other experiments module with a `main(argv)` (the demos and benchmarks beside them).
 """
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import subprocess
 import sys
 import time
@@ -33,10 +35,15 @@ def main(argv=None) -> int:
                 failed.append(exp)
         print(f"== all: {time.perf_counter() - t_all:.0f} s; failed: {failed or 'none'}")
         return 1 if failed else 0
-    if name not in EXPERIMENTS:
-        print(f"unknown experiment {name!r}; expected 'all' or one of {', '.join(EXPERIMENTS)}", file=sys.stderr)
+    if not name.isidentifier() or name.startswith("_") or importlib.util.find_spec(f"experiments.{name}") is None:
+        print(f"unknown experiment {name!r}; expected 'all' or one of {', '.join(EXPERIMENTS)} "
+              f"(or another experiments module with a main)", file=sys.stderr)
         return 2
-    importlib.import_module(f"experiments.{name}").main(rest)
+    module = importlib.import_module(f"experiments.{name}")
+    if not hasattr(module, "main"):
+        print(f"experiments.{name} has no main(argv)", file=sys.stderr)
+        return 2
+    module.main(rest)
     return 0
 
 
