@@ -166,6 +166,11 @@ def make_observable_jacobian(sim: Simulator, observable: Callable, wrt=FIT_FIELD
         scene = sim.scene if scene is None else scene
         return ObservableJacobian(*run(params, state0, scene), wrt)
 
+    def lower(params: Params, state0: State | None = None, scene: Scene | None = None):
+        """The lowered program (for `.compile().cost_analysis()` / `.memory_analysis()`)."""
+        return run.lower(params, sim.state0 if state0 is None else state0, sim.scene if scene is None else scene)
+
+    fn.lower = lower
     return fn
 
 
