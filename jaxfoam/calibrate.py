@@ -224,11 +224,12 @@ class FitResult:
       correlation: (p, p) correlation matrix of the fitted parameters (order of `fitted`).
       identifiable: fitted name -> whether the data determine it.
       notes: plain-language identifiability findings.
-      loss: 0.5 |r|^2 at the optimum (dimensionless).
+      loss: 0.5 |r|^2 at the optimum (dimensionless): the lowest over every iterate of every start.
       loss_history: (K+1,) loss per iteration of the best start.
       time_history: (K+1,) wall time of each of those iterations, s since its start.
       runs: one dict per start: start and end parameters, loss, reason, iterations, evaluations, wall time.
-      best_run: index of the best start.
+      best_run: index of the start with the lowest loss.  best_iteration: its iteration with that loss
+        (the last one, except for Adam, whose loss may rise again).
       reason: why the best start stopped.  iterations, evaluations: of the best start.
       settings: the `FitSettings` as a dict, plus the resolved dx, pixel level and substeps.
       data: summary of the data (frames, image size, pixel size, frames used).
@@ -253,6 +254,7 @@ class FitResult:
     time_history: np.ndarray
     runs: list
     best_run: int
+    best_iteration: int
     reason: str
     iterations: int
     evaluations: int
@@ -287,7 +289,7 @@ class FitResult:
             "numerical_error": self.numerical_error, "stderr": self.stderr, "correlation": self.correlation,
             "identifiable": self.identifiable, "notes": list(self.notes), "loss": self.loss,
             "loss_history": self.loss_history, "time_history": self.time_history, "runs": self.runs,
-            "best_run": self.best_run, "reason": self.reason, "iterations": self.iterations,
+            "best_run": self.best_run, "best_iteration": self.best_iteration, "reason": self.reason, "iterations": self.iterations,
             "evaluations": self.evaluations, "settings": self.settings, "data": self.data,
             "wall_time": self.wall_time, "n_effective": self.n_effective,
         })
@@ -743,12 +745,23 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
             fitlog.close()
     after0 = time.perf_counter()
 
-    best = ms.best
-    r, J = best.residual, best.jacobian
+    # The lowest loss of any iterate of any start: Adam accepts every finite step, so its last
+    # iterate need not be its best one (LM and L-BFGS only accept decreases).
+    lows = [float(np.min(s.history.loss)) if len(s.history.loss) else math.inf for s in ms.solutions]
+    best_index = int(np.argmin(lows))
+    best = ms.solutions[best_index]
+    k_best = int(np.argmin(best.history.loss))
+    if k_best == len(best.history.loss) - 1:
+        z_best, loss_best = np.asarray(best.x), float(best.loss)
+        r, J = best.residual, best.jacobian
+    else:
+        z_best, loss_best = np.asarray(best.history.x[k_best]), float(best.history.loss[k_best])
+        r = J = None
+        say(f"best iterate: start {best_index + 1}, iteration {k_best} (loss {loss_best:.6g}), not the last one")
     if r is None or J is None or not np.all(np.isfinite(np.asarray(r))):
-        r, J = problem.residual_and_jacobian(best.x)
-    unc, n_eff = fit_uncertainty(problem, best.x, r, J, level=settings.level)
-    params = problem.params_of(best.x)
+        r, J = problem.residual_and_jacobian(z_best)
+    unc, n_eff = fit_uncertainty(problem, z_best, r, J, level=settings.level)
+    params = problem.params_of(z_best)
     p = len(names)
     numerical = {n: 0.0 for n in names}
     dx_check = None
@@ -761,10 +774,10 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
         notes = list(unc.messages)
         if settings.dx_check:
             say(f"discretization check: the residual at the optimum with dx = {problem.dx * DX_CHECK_RATIO:.4g} m")
-            err_z, shift_z = discretization_error(problem, best.x, J)
+            err_z, shift_z = discretization_error(problem, z_best, J)
             both = combine_intervals(unc, err_z, tr)
             half_stat = 0.5 * (unc.interval_z[:, 1] - unc.interval_z[:, 0])
-            zb = np.asarray(best.x, np.float64)
+            zb = np.asarray(z_best, np.float64)
             up = np.asarray(tr.to_physical(jnp.asarray(zb + err_z)))
             down = np.asarray(tr.to_physical(jnp.asarray(zb - err_z)))
             for i, n in enumerate(names):
@@ -801,9 +814,9 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
                     scene_kind=problem.scene.kind, dim=problem.scene.dim, source=data.source)
     return FitResult(params=params, fitted=names, interval=interval, interval_statistical=stat,
                      numerical_error=numerical, stderr=stderr, correlation=corr,
-                     identifiable=identifiable, notes=notes, loss=float(best.loss),
+                     identifiable=identifiable, notes=notes, loss=loss_best,
                      loss_history=np.asarray(best.history.loss), time_history=np.asarray(best.history.time),
-                     runs=runs, best_run=int(ms.best_index), reason=best.reason.value,
+                     runs=runs, best_run=best_index, best_iteration=k_best, reason=best.reason.value,
                      iterations=int(best.iterations), evaluations=int(best.evaluations), settings=settings_out,
                      data=data_out, n_effective=float(n_eff),
                      wall_time=before + sum(s.wall_time for s in ms.solutions) + time.perf_counter() - after0,
