@@ -19,7 +19,7 @@ a 2D fit under 15 minutes on 2 CPU cores.
 
 Every case is saved as it finishes (out/recovery/<case>.json, data and fit logs beside it; a killed
 study resumes where it stopped), and the table and chart are rebuilt from the finished cases.
-Usage: python -m experiments.recovery [--quick] [--report]   (--report: only rebuild table and chart)
+Usage: python -m experiments.recovery [--quick] [--sets N] [--report]   (--report: only rebuild table and chart)
 Writes experiments/results/recovery[_quick].md and .png. SI units.
 """
 from __future__ import annotations
@@ -92,11 +92,11 @@ def truth_sets() -> list[dict]:
     return out
 
 
-def plan(quick: bool) -> list[tuple]:
+def plan(quick: bool, n_sets: int | None = None) -> list[tuple]:
     """(priority, scene case, set index, optimizer) in the order they run: LM on the first set of every
     2D scene, then the optimizer comparison, then 3D, then the remaining sets."""
     cases = QUICK if quick else FULL
-    sets = [0] if quick else list(range(N_SETS))
+    sets = list(range((1 if quick else N_SETS) if n_sets is None else min(int(n_sets), N_SETS)))
     jobs = []
     for k in sets:
         for c in cases:
@@ -196,14 +196,14 @@ def _fmt_err(e: dict) -> str:
     return s + flags
 
 
-def report(quick: bool) -> None:
+def report(quick: bool, n_sets: int | None = None) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     recs = load_records(quick)
-    jobs = plan(quick)
+    jobs = plan(quick, n_sets)
     done = {(r["scene"], r["set"], r["optimizer"]) for r in recs}
     missing = [f"{c.name} set {k} ({opt})" for _, c, k, opt in jobs if (c.name, k, opt) not in done]
     lm = [r for r in recs if r["optimizer"] == "lm"]
@@ -231,7 +231,7 @@ def report(quick: bool) -> None:
                        for c in (QUICK if quick else FULL))
     body.append(
         f"{'Quick' if quick else 'Full'} study: scenes {scenes}; "
-        f"parameter sets {[k for k in range(N_SETS) if not quick or k == 0]} of {truth_sets()}; "
+        f"parameter sets {sorted({k for _, _, k, _ in jobs})} of {truth_sets()}; "
         f"{b['starts']} start(s) per fit, iteration budgets {b['iters']}; data noise {NOISE} (boundary pixel flips), "
         f"{DROP_FRAMES:.0%} of frames dropped, plate pixels weight 0. All four parameters are fitted with the "
         f"fitter's default bounds, starts and discretization check; density and kappa are the scene's.\n\n")
@@ -322,17 +322,19 @@ def main(argv=None) -> None:
     ap.add_argument("--quick", action="store_true", help="one parameter set per scene, coarser fits, one start")
     ap.add_argument("--report", action="store_true", help="only rebuild the table and chart from finished cases")
     ap.add_argument("--only", default=None, help="run only jobs whose scene name contains this text")
+    ap.add_argument("--sets", type=int, default=None,
+                    help=f"parameter sets per scene (default 1 with --quick, {N_SETS} without)")
     args = ap.parse_args(argv)
     if not args.report:
-        for _, c, k, opt in plan(args.quick):
+        for _, c, k, opt in plan(args.quick, args.sets):
             if args.only and args.only not in c.name:
                 continue
             try:
                 run_job(c, k, opt, args.quick)
-                report(args.quick)
+                report(args.quick, args.sets)
             except Exception as exc:  # one failed case must not stop the study; it is reported as missing
                 print(f"== {case_id(c, k, args.quick)} {opt} FAILED: {type(exc).__name__}: {exc}", flush=True)
-    report(args.quick)
+    report(args.quick, args.sets)
 
 
 if __name__ == "__main__":
