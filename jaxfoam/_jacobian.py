@@ -175,6 +175,8 @@ def make_observable_jacobian(sim: Simulator, observable: Callable, wrt=FIT_FIELD
 
 
 _CACHE: "weakref.WeakKeyDictionary[Simulator, dict]" = weakref.WeakKeyDictionary()
+# Compiled Jacobian functions kept per simulator (oldest dropped first): a few observables and modes.
+CACHE_PER_SIMULATOR = 8
 
 
 def observable_jacobian(sim: Simulator, params: Params, observable: Callable, wrt=FIT_FIELDS,
@@ -188,7 +190,8 @@ def observable_jacobian(sim: Simulator, params: Params, observable: Callable, wr
       params: material parameters (SI units) at which to differentiate.
       observable: frames dict (arrays (T, N, ...) as recorded by `observe`) -> array of any shape S,
         e.g. `lambda fr: jnp.mean(fr["x"][:, :, 1], axis=1)` (mean height per frame, m, S = (T,)).
-        Must be a hashable function (a module-level function or a lambda kept alive).
+        The compiled function is cached per (simulator, observable, wrt, mode, observe, checkpoint):
+        pass the same function object on repeated calls (a new lambda each call recompiles).
       wrt: input names: Params fields ("mu", "sigma_y", "eta", "m", "kappa", "rho"), scene fields
         ("gravity", "floor_friction"), plate motion ("plate0.amplitude", "plate0.frequency", ...),
         initial state ("state0.x", "state0.v", ...). Default: the four fitted parameters.
@@ -206,5 +209,7 @@ def observable_jacobian(sim: Simulator, params: Params, observable: Callable, wr
     key = (observable, _check_wrt(wrt, sim.scene), mode, observe, checkpoint)
     per_sim = _CACHE.setdefault(sim, {})
     if key not in per_sim:
+        if len(per_sim) >= CACHE_PER_SIMULATOR:
+            del per_sim[next(iter(per_sim))]
         per_sim[key] = make_observable_jacobian(sim, observable, key[1], mode, observe, checkpoint)
     return per_sim[key](params, state0=state0, scene=scene)

@@ -91,6 +91,20 @@ def _offsets(d):
     return list(itertools.product(range(3), repeat=d))
 
 
+def _stencil_terms(fx, w, offs, dx):
+    """Per-offset weights W (K, N) and offsets from the particle dpos: d arrays (K, N), m."""
+    d = fx.shape[-1]
+    W = []
+    for off in offs:
+        weight = w[off[0]][:, 0]
+        for k in range(1, d):
+            weight = weight * w[off[k]][:, k]
+        W.append(weight)
+    offa = np.asarray(offs)
+    dpos = [(jnp.asarray(offa[:, k], fx.dtype)[:, None] - fx[None, :, k]) * dx for k in range(d)]
+    return jnp.stack(W), dpos
+
+
 def _flat_index(base, offset, grid: Grid):
     strides = np.cumprod((grid.shape[1:] + (1,))[::-1])[::-1]
     idx = 0
@@ -115,22 +129,24 @@ def p2g(state: State, params: Params, grid: Grid, dt) -> tuple[jax.Array, jax.Ar
     k_stress = (-dt * 4.0 / grid.dx ** 2) * vol
     affine = [[k_stress * tau[i][j] + mass * state.C[:, i, j] for j in range(d)] for i in range(d)]
     mv = [mass * state.v[:, i] for i in range(d)]
-    idx, vals = [], []
-    for off in _offsets(d):
-        weight = w[off[0]][:, 0]
-        for k in range(1, d):
-            weight = weight * w[off[k]][:, k]
-        dpos = [(off[k] - fx[:, k]) * grid.dx for k in range(d)]
-        cols = [weight * (mv[i] + sum(affine[i][k] * dpos[k] for k in range(d))) for i in range(d)]
-        vals.append(jnp.stack(cols + [weight * mass], axis=1))
-        idx.append(_flat_index(base, off, grid))
-    grid_mv = jnp.zeros((grid.num_nodes, d + 1), x.dtype).at[jnp.concatenate(idx)].add(
-        jnp.concatenate(vals), mode="drop")
+    offs = _offsets(d)
+    W, dpos = _stencil_terms(fx, w, offs, grid.dx)
+    # All stencil offsets in one broadcast expression (K, N, d + 1): one loop fusion feeding one
+    # fused scatter-add (written per offset and concatenated, XLA:CPU recomputed the stress per offset).
+    # The per-particle payload is stacked first: XLA:CPU then computes the stress once per particle,
+    # not once per particle and offset.
+    mvA = jnp.stack(mv, axis=1)
+    A = jnp.stack([jnp.stack(row, axis=1) for row in affine], axis=1)
+    cols = [W * (mvA[None, :, i] + sum(A[None, :, i, k] * dpos[k] for k in range(d))) for i in range(d)]
+    vals = jnp.stack(cols + [W * mass[None]], axis=-1).reshape(-1, d + 1)
+    idx = jnp.concatenate([_flat_index(base, off, grid) for off in offs])
+    grid_mv = jnp.zeros((grid.num_nodes, d + 1), x.dtype).at[idx].add(vals, mode="drop")
     return grid_mv[:, :d], grid_mv[:, d]
 
 
 def _safe_norm_vec(v):
-    sq = jnp.sum(v * v, axis=-1)
+    # Explicit component sum: XLA:CPU runs a reduction over an axis of length d as a slow library call.
+    sq = sum(v[..., k] * v[..., k] for k in range(v.shape[-1]))
     pos = sq > 0
     return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)
 
@@ -160,7 +176,7 @@ def apply_colliders(v, node_x, scene: Scene, t, colliders=()) -> jax.Array:
             normal = jax.nn.one_hot(axis, d, dtype=v.dtype) * jnp.sign(
                 jnp.take_along_axis(rel, axis[:, None], -1))
             vrel = v - vp[None, :]
-            vn = jnp.sum(vrel * normal, -1)
+            vn = sum(vrel[:, k] * normal[:, k] for k in range(d))
             vrel = vrel - jnp.minimum(vn, 0.0)[:, None] * normal
             v = jnp.where(inside[:, None], vp[None, :] + vrel, v)
     if scene.floor_y is not None:
@@ -198,16 +214,20 @@ def g2p(state: State, grid_v, grid: Grid) -> tuple[jax.Array, jax.Array]:
     offs = _offsets(d)
     idx = jnp.concatenate([_flat_index(base, off, grid) for off in offs])
     gathered = grid_v.at[idx].get(mode="fill", fill_value=0.0).reshape(len(offs), x.shape[0], d)
-    v = jnp.zeros_like(x)
-    C = jnp.zeros(x.shape + (d,), x.dtype)
-    for o, off in enumerate(offs):
-        weight = w[off[0]][:, 0]
-        for k in range(1, d):
-            weight = weight * w[off[k]][:, k]
-        vi = weight[:, None] * gathered[o]
-        dpos = (jnp.asarray(off, x.dtype)[None, :] - fx) * grid.dx
-        v = v + vi
-        C = C + vi[:, :, None] * dpos[:, None, :]
+    W, _ = _stencil_terms(fx, w, offs, grid.dx)
+    offa = jnp.asarray(np.asarray(offs), x.dtype)
+
+    # The sum over offsets runs as a scan: its carry is materialized once. As an unrolled sum XLA:CPU
+    # fused it into every consumer in the constitutive update and recomputed it there (3D: 5x slower).
+    def accumulate(carry, xs):
+        v, C = carry
+        g, wo, off = xs
+        vi = wo[:, None] * g
+        dp = (off[None, :] - fx) * grid.dx
+        return (v + vi, C + vi[:, :, None] * dp[:, None, :]), None
+
+    zero = (jnp.zeros_like(x), jnp.zeros(x.shape + (d,), x.dtype))
+    (v, C), _ = jax.lax.scan(accumulate, zero, (gathered, W, offa))
     return v, C * (4.0 / grid.dx ** 2)
 
 

@@ -22,6 +22,12 @@ CFL = 0.3
 SPEED_SAFETY = 1.5
 
 STATE_FIELDS = ("x", "v", "C", "F", "bbar_e")
+# Reverse mode: substeps per inner rematerialization block of a frame. A frame's backward pass then
+# holds the block-boundary states and one block's residuals (~2.5 kB per particle-substep in 2D
+# float64) instead of the whole frame's: measured on the 2D hanging plate at 72 substeps per frame,
+# the gradient's working memory fell from 762 MB to 66 MB at the same run time
+# (experiments/bench_grad.py). The forward computation is unchanged.
+CHECKPOINT_BLOCK = 4
 
 
 class SimulationError(FloatingPointError):
@@ -102,13 +108,25 @@ def _rollout_impl(state0, params, scene, frame_times, frame_dts, grid, substeps,
             return s, None
 
         xs = None if resample is None else jnp.arange(substeps)
-        state, _ = jax.lax.scan(sub, state, xs, length=substeps)
+        nb = substeps // CHECKPOINT_BLOCK if checkpoint else 0
+        if nb > 1:
+            def block(s, xb):
+                return jax.lax.scan(sub, s, xb, length=CHECKPOINT_BLOCK)[0], None
+
+            head = None if xs is None else xs[:nb * CHECKPOINT_BLOCK].reshape(nb, CHECKPOINT_BLOCK)
+            state, _ = jax.lax.scan(jax.checkpoint(block), state, head, length=nb)
+            rest = substeps - nb * CHECKPOINT_BLOCK
+            if rest:
+                state, _ = jax.lax.scan(sub, state, None if xs is None else xs[nb * CHECKPOINT_BLOCK:], length=rest)
+        else:
+            state, _ = jax.lax.scan(sub, state, xs, length=substeps)
         state = state.replace(t=t_target)
         return state, (observe(state, params), _health(state))
 
     if checkpoint:
-        # Reverse mode stores one state per frame and recomputes the frame's substeps: peak memory
-        # grows with the number of frames, not the number of substeps.
+        # Reverse mode stores one state per frame and recomputes the frame's substeps (themselves in
+        # rematerialized blocks of CHECKPOINT_BLOCK): peak memory grows with the number of frames and
+        # the substeps per frame / CHECKPOINT_BLOCK, not with the number of substeps.
         frame = jax.checkpoint(frame)
     xs = (frame_times, frame_dts) if resample is None else (frame_times, frame_dts, jnp.arange(len(frame_times)))
     final, (frames, health) = jax.lax.scan(frame, state0, xs)
