@@ -14,7 +14,7 @@ import sys
 import time
 
 # Order: validation first, then stability, then accuracy-vs-speed (the slowest).
-EXPERIMENTS = ("rheometer", "poiseuille", "elastic_wave", "slump", "stability", "pareto")
+EXPERIMENTS = ("rheometer", "poiseuille", "elastic_wave", "slump", "stability", "kappa_study", "pareto")
 
 
 def main(argv=None) -> int:
