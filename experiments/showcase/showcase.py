@@ -3,7 +3,7 @@
 A showcase file (JSON) holds:
   name, description: text.
   scene: a scene description for `jaxfoam.load_scene` (kind, dim, domain, plates, initial shape, ...).
-  params: mu, kappa, sigma_y, eta, m, rho (SI units; see experiments/README_materials_section.md).
+  params: mu, kappa, sigma_y, eta, m, rho (SI units; see docs/materials.md).
   colliders: a list of SDF colliders (`jaxfoam.sdf.collider_from_spec`): shapes the scene JSON cannot
     express (a face, crackers with holes, a pie tin), with a prescribed translation in time.
   resample: ResampleConfig fields, or null.  fracture: FractureConfig fields, or null.
