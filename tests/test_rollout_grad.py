@@ -139,9 +139,11 @@ def test_checkpointed_and_plain_reverse_agree(sim, rev):
 def test_long_rollout_gradient_through_checkpoints():
     """2000 substeps (40 frames): reverse mode through per-frame checkpoints is finite and equals
     forward mode (jacfwd, no tape) to 1e-8 relative, for the material parameters and the plate motion.
-    The plain-scan tape of this rollout would hold every substep's residuals (~3.5 kB per
-    particle-substep as measured by experiments/bench_grad.py, ~1.3 GB here); with a checkpoint per
-    frame only 40 states and one frame's tape (50 substeps) are alive at once."""
+    The plain-scan tape of this rollout would hold every substep's residuals (a few kB per
+    particle-substep in 2D float64, about 1 GB here; experiments/bench_grad.py measures it); with a
+    checkpoint per frame and rematerialized blocks of CHECKPOINT_BLOCK substeps inside each frame,
+    only the 40 frame states, one frame's 12 block-boundary states and a few substeps' residuals are
+    alive at once."""
     long_sim = _sim(40)
     assert long_sim.total_substeps == 2000
     r = jf.observable_jacobian(long_sim, PARAMS, mean_height, WRT, mode="rev", checkpoint=True)
