@@ -14,7 +14,8 @@ import sys
 import time
 
 # Order: validation first, then stability, then accuracy-vs-speed (the slowest).
-EXPERIMENTS = ("rheometer", "poiseuille", "elastic_wave", "slump", "stability", "kappa_study", "pareto")
+EXPERIMENTS = ("rheometer", "poiseuille", "elastic_wave", "slump", "stability", "kappa_study", "grad_horizon",
+               "pareto")
 
 
 def main(argv=None) -> int:

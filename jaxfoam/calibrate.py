@@ -49,7 +49,7 @@ import numpy as np
 import fitting
 
 from ._params import FIT_FIELDS, Params
-from ._scene import DEFAULT_PPC, Scene, init_state
+from ._scene import Scene, init_state
 from ._simulate import Simulator, _rollout_jit
 from .io import Camera, Silhouettes, read_silhouettes
 from .silhouette import (BSPLINE_SUPPORT, RenderConfig, make_render_config, make_target, particle_spacing,
@@ -93,6 +93,16 @@ DX_CHECK_ORDER = 1.0
 # convergence order that is assumed rather than measured on three grids would call for 3; we take the
 # first-order assumption, itself conservative against second order, with the smaller factor).
 GCI_SAFETY = 1.25
+# The fit's default discretization and precision, from the measurements in experiments/MODEL_CHOICE.md
+# (its `defaults` block states the same values; tests/test_model_choice.py keeps the two equal).
+# Cells across the largest extent: 2D 64, the most accurate grid measured; 3D 32, the affordable one (section 1).
+FIT_CELLS = {2: 64, 3: 32}
+# Particles per cell: 1 is 2-10x less accurate, 9 costs 2.25x the particles for no gain (section 1).
+FIT_PPC = {2: 4, 3: 8}
+# CFL number: 3.3x margin to the first unstable CFL; CFL's effect on fitted parameters unmeasured (section 2).
+FIT_CFL = 0.3
+# Precision: float32 gradients are unmeasured and FTOL = 1e-7 sits at float32 round-off (section 2).
+FIT_DTYPE = "float64"
 
 
 class CalibrationError(ValueError):
@@ -108,8 +118,8 @@ class FitSettings:
     """What to fit and how (all SI units).
 
     Attributes:
-      dx: grid spacing of the fit, m (None: the largest domain extent / 64 in 2D, / 32 in 3D).
-      ppc: particles per cell (None: 4 in 2D, 8 in 3D).
+      dx: grid spacing of the fit, m (None: the largest domain extent / FIT_CELLS: 64 in 2D, 32 in 3D).
+      ppc: particles per cell (None: FIT_PPC: 4 in 2D, 8 in 3D).
       optimizer: "lm" (Levenberg-Marquardt), "lbfgs" or "adam".
       fixed: name -> value: fitted parameters held fixed (mu, sigma_y, eta, m), or overrides of the
         scene's known inputs kappa (Pa) and rho (kg/m^3).
@@ -121,7 +131,7 @@ class FitSettings:
       pixel_level: pyramid level of the observations (0 = the data's pixels, l = 2^l times larger);
         None picks the coarsest level whose pixels are not larger than the particle spacing.
       level: confidence level of the intervals.
-      dtype: "float64" or "float32".
+      dtype: "float64" (FIT_DTYPE) or "float32".
       distance_weight, chamfer_weight: weights of the distance-field terms in the residual.
       dx_check: estimate the numerical (discretization) error of the estimate from one more rollout with
         grid spacing DX_CHECK_RATIO dx and widen the intervals by it (see `discretization_error`).
@@ -138,7 +148,7 @@ class FitSettings:
     seed: int = 0
     pixel_level: int | None = None
     level: float = DEFAULT_LEVEL
-    dtype: str = "float64"
+    dtype: str = FIT_DTYPE
     distance_weight: float = 1.0
     chamfer_weight: float = 1.0
     dx_check: bool = True
@@ -490,14 +500,13 @@ def build_problem(data: Silhouettes, settings: FitSettings | None = None) -> Cal
     Returns a `CalibrationProblem`. Raises CalibrationError for unusable settings or data (no frame
     after the start of the simulation, an empty first mask).
     """
-    from .cli import default_dx
-
     settings = (settings or FitSettings()).validate()
     dtype = jnp.float64 if settings.dtype == "float64" else jnp.float32
     scene: Scene = data.load_scene(dtype=dtype)
     d = scene.dim
-    dx = default_dx(scene) if settings.dx is None else float(settings.dx)
-    ppc = DEFAULT_PPC[d] if settings.ppc is None else int(settings.ppc)
+    extent = float(np.max(np.asarray(scene.domain_max) - np.asarray(scene.domain_min)))
+    dx = extent / FIT_CELLS[d] if settings.dx is None else float(settings.dx)
+    ppc = FIT_PPC[d] if settings.ppc is None else int(settings.ppc)
     fixed = dict(settings.fixed)
     kappa = float(fixed.get("kappa", scene.kappa))
     rho = float(fixed.get("rho", scene.density))
@@ -528,7 +537,7 @@ def build_problem(data: Silhouettes, settings: FitSettings | None = None) -> Cal
     if len(used) == 0:
         raise CalibrationError(f"times: no frame after the start of the simulation (t0 = {t0} s); the fit needs "
                                f"at least one frame after the initial shape")
-    sim = Simulator(scene, times[used], ref, dx, ppc, dtype=dtype, state0=state0)
+    sim = Simulator(scene, times[used], ref, dx, ppc, dtype=dtype, state0=state0, cfl=FIT_CFL)
 
     spacing = particle_spacing(dx, ppc, d)
     level = (choose_pixel_level(data.camera.pixel_size, spacing, data.image_shape) if settings.pixel_level is None
@@ -802,7 +811,7 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
         runs.append(dict(start=problem.params_of(starts[i]), end=problem.params_of(s.x), loss=float(s.loss),
                          reason=s.reason.value, iterations=int(s.iterations), evaluations=int(s.evaluations),
                          wall_time=float(s.wall_time)))
-    settings_out = dict(settings.to_dict(), dx=problem.dx, ppc=DEFAULT_PPC[problem.scene.dim]
+    settings_out = dict(settings.to_dict(), dx=problem.dx, ppc=FIT_PPC[problem.scene.dim]
                         if settings.ppc is None else int(settings.ppc),
                         pixel_level=problem.pixel_level, pixel_size_fit=problem.cfg.pixel_size,
                         substeps_per_frame=sim.substeps, dt=sim.dt, fitted=list(names),
@@ -965,8 +974,10 @@ def add_fit_parser(subparsers) -> argparse.ArgumentParser:
     ap.add_argument("data", help="silhouette file (.h5)")
     ap.add_argument("--out", required=True, help="result file (.json)")
     ap.add_argument("--dx", type=float, default=None,
-                    help="grid spacing of the fit, m (default: the largest domain extent / 64 in 2D, / 32 in 3D)")
-    ap.add_argument("--ppc", type=int, default=None, help="particles per cell (default 4 in 2D, 8 in 3D)")
+                    help=f"grid spacing of the fit, m (default: the largest domain extent / {FIT_CELLS[2]} in 2D, "
+                         f"/ {FIT_CELLS[3]} in 3D)")
+    ap.add_argument("--ppc", type=int, default=None,
+                    help=f"particles per cell (default {FIT_PPC[2]} in 2D, {FIT_PPC[3]} in 3D)")
     ap.add_argument("--optimizer", choices=OPTIMIZERS, default="lm", help="default lm (Levenberg-Marquardt)")
     ap.add_argument("--fix", default=None,
                     help="hold parameters fixed, e.g. m=0.5,eta=10; kappa=.. or rho=.. override the scene's values")
@@ -979,7 +990,8 @@ def add_fit_parser(subparsers) -> argparse.ArgumentParser:
     ap.add_argument("--seed", type=int, default=0, help="seed of the starts and particle sampling (default 0)")
     ap.add_argument("--pixel-level", type=int, default=None,
                     help="compare at 2^level larger pixels (default: the coarsest not larger than the particle spacing)")
-    ap.add_argument("--dtype", choices=("float32", "float64"), default="float64")
+    ap.add_argument("--dtype", choices=("float32", "float64"), default=FIT_DTYPE,
+                    help=f"precision (default {FIT_DTYPE})")
     ap.add_argument("--log", default=None, help="fit log path (default <out>.fitlog.h5 beside the result)")
     ap.add_argument("--resume", action="store_true", help="continue the fit recorded in the fit log")
     ap.add_argument("--no-dx-check", action="store_true",
