@@ -77,7 +77,11 @@ QUICK = [SceneCase("hanging_plate_2d", 0.01, 0.6, 8), SceneCase("drop_2d", 0.01,
 BUDGET = {True: dict(starts=1, iters={"lm": 12, "lbfgs": 12, "adam": 20}),
           False: dict(starts=1, iters={"lm": 20, "lbfgs": 20, "adam": 40})}
 # Which (scene, set) pairs get the optimizer comparison (all three optimizers).
-COMPARE = {True: [("drop_2d", 0)], False: [("drop_2d", 0)]}
+COMPARE = {True: [("drop_2d", 0)], False: [("drop_2d", 0), ("squeeze_2d", 0), ("hanging_plate_2d", 1)]}
+
+
+# Conclusions of the full run, written from its tables (appended to recovery.md only).
+VERDICT = ""
 
 
 def truth_sets() -> list[dict]:
@@ -127,6 +131,36 @@ def make_data(c: SceneCase, k: int, quick: bool) -> tuple[Path, float]:
                       drop_frames=DROP_FRAMES, seed=k, progress=lambda m: print("  synth:", m, flush=True))
     data.write(path)
     return path, time.perf_counter() - t0
+
+
+# Plastic shear rates below this (1/s) count as not yielding (the elastic creep of the return map).
+YIELD_RATE = 1e-3
+SHEAR_FRAMES = 20  # frames of the truth rollout sampled for the shear-rate range
+
+
+def shear_rates(c: SceneCase, k: int, quick: bool) -> dict:
+    """The plastic shear rates the truth produces in a case (rolled out at dx_fit, SHEAR_FRAMES frames):
+    the fraction of particle-frames that yield and the 10th/50th/90th percentiles of their rate (1/s).
+    eta and m can only be separated when these span a wide range (stress sigma_y + eta gamma_dot^m).
+    Cached in out/recovery/<case>_shear.json."""
+    path = WORK / f"{case_id(c, k, quick)}_shear.json"
+    if path.exists():
+        return json.loads(path.read_text())
+    from jaxfoam import Params, load_scene, simulate
+
+    scene = load_scene(json.loads((SCENES / f"{c.name}.json").read_text()))
+    t = truth_sets()[k]
+    p = Params(mu=t["mu"], kappa=scene.kappa, sigma_y=t["sigma_y"], eta=t["eta"], m=t["m"], rho=scene.density)
+    times = np.linspace(c.duration / SHEAR_FRAMES, c.duration, SHEAR_FRAMES)
+    g = np.asarray(simulate(scene, p, times, c.dx_fit).frames["gamma_dot"]).ravel()
+    y = g[g > YIELD_RATE]
+    out = dict(yielding=float(y.size / g.size),
+               p10=float(np.percentile(y, 10)) if y.size else 0.0,
+               p50=float(np.percentile(y, 50)) if y.size else 0.0,
+               p90=float(np.percentile(y, 90)) if y.size else 0.0)
+    WORK.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(out) + "\n")
+    return out
 
 
 def evaluate(fit: dict, truth: dict) -> dict:
@@ -191,6 +225,15 @@ def load_records(quick: bool) -> list[dict]:
     return recs
 
 
+def _fmt_shear(r: dict) -> str:
+    c = next(c for c in (QUICK + FULL) if c.name == r["scene"] and c.dx_fit == r["dx_fit"])
+    try:
+        sh = shear_rates(c, r["set"], r["case"].startswith("q_"))
+    except Exception as exc:  # the table must not fail over a diagnostic
+        return f"({type(exc).__name__})"
+    return f"{100 * sh['yielding']:.0f}%; {sh['p10']:.2g}-{sh['p90']:.2g}"
+
+
 def _fmt_err(e: dict) -> str:
     s = f"{100 * e['error']:+.0f}%" if e["kind"] == "rel" else f"{e['error']:+.2f}"
     flags = ("" if e["inside"] else " out") + ("" if e["identifiable"] else " n.i.")
@@ -216,7 +259,8 @@ def report(quick: bool, n_sets: int | None = None) -> None:
         rows.append([r["scene"], r["set"], ", ".join(f"{n}={r['truth'][n]:.3g}" for n in names),
                      ", ".join(f"{fit['params'][n]:.3g}" for n in names)]
                     + [_fmt_err(ev[n]) for n in names]
-                    + [fit["iterations"], fit["evaluations"], fit["reason"], f"{fit['wall_time'] / 60:.1f}"])
+                    + [fit["iterations"], fit["evaluations"], fit["reason"], f"{fit['wall_time'] / 60:.1f}",
+                       _fmt_shear(r)])
     n_par = sum(len(names) for _ in lm)
     inside = sum(r["evaluation"][n]["inside"] for r in lm for n in names)
     inside_stat = sum(r["evaluation"][n]["inside_statistical"] for r in lm for n in names)
@@ -244,7 +288,14 @@ def report(quick: bool, n_sets: int | None = None) -> None:
         body.append("Errors: relative for mu, sigma_y, eta, absolute for m; `out` = truth outside the 95% interval, "
                     "`n.i.` = reported not identifiable.\n\n")
         body.append(C.md_table(["scene", "set", "truth (mu, sigma_y, eta, m)", "fit"] + [f"err {n}" for n in names]
-                               + ["iter", "evals", "stop", "wall min"], rows))
+                               + ["iter", "evals", "stop", "wall min", "yielding; shear rate p10-p90 (1/s)"], rows))
+        body.append("\nTrue value, fit and combined 95% interval of every parameter (LM):\n\n")
+        irows = [[r["scene"], r["set"], n, f"{r['truth'][n]:.4g}", f"{r['fit']['params'][n]:.4g}",
+                  "[" + ", ".join(f"{v:.4g}" for v in r["evaluation"][n]["interval"]) + "]",
+                  "yes" if r["evaluation"][n]["inside"] else "**no**",
+                  "yes" if r["evaluation"][n]["identifiable"] else "no"] for r in lm for n in names]
+        body.append(C.md_table(["scene", "set", "param", "truth", "fit", "95% interval", "truth inside",
+                                "identifiable"], irows))
         body.append(f"\nTruth inside the combined 95% interval: {inside}/{n_par} parameter-cases "
                     f"({100 * inside / max(n_par, 1):.0f}%; goal >= 90%); inside the Gauss-Newton interval alone: "
                     f"{inside_stat}/{n_par}. Goal met (within tolerance, or not identifiable with the truth inside): "
@@ -264,6 +315,22 @@ def report(quick: bool, n_sets: int | None = None) -> None:
                 + [_fmt_err(r["evaluation"][n]) for n in names] for r in comp]
         body.append(C.md_table(["scene", "set", "optimizer", "final loss", "iter", "evals", "stop", "wall min"]
                                + [f"err {n}" for n in names], crow))
+    if lm:
+        body.append("\n## Which scene constrains which parameter (LM fits)\n\n"
+                    "Per scene: in how many fits the parameter was identifiable, and the median error "
+                    "(relative; absolute for m) over the fits.\n\n")
+        srows = []
+        for scene in dict.fromkeys(r["scene"] for r in lm):
+            rs = [r for r in lm if r["scene"] == scene]
+            row = [scene, len(rs)]
+            for n in names:
+                ident = sum(r["evaluation"][n]["identifiable"] for r in rs)
+                med = float(np.median([abs(r["evaluation"][n]["error"]) for r in rs]))
+                row.append(f"{ident}/{len(rs)}, {100 * med:.0f}%" if GOALS[n][0] == "rel" else f"{ident}/{len(rs)}, {med:.2f}")
+            srows.append(row)
+        body.append(C.md_table(["scene", "fits"] + [f"{n}: identifiable, median err" for n in names], srows))
+    if not quick and VERDICT:
+        body.append("\n## Verdict\n\n" + VERDICT.strip() + "\n")
 
     fig, axes = plt.subplots(1, 3, figsize=(16, 4.6))
     ax = axes[0]
