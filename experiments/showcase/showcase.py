@@ -38,6 +38,8 @@ KEYS = {"name", "description", "scene", "params", "colliders", "resample", "frac
 RUN_KEYS = {"dx", "ppc", "duration", "frames", "dtype", "note"}
 # Plastic rates drawn over this many decades below the top of the colour scale (creep to splash).
 GAMMA_DECADES = 3.0
+# Contact sheets are drawn at 70% of the frames' pixel size: small enough to commit (~150 kB).
+SHEET_DPI = 70
 
 
 def load_showcase(path):
@@ -196,7 +198,7 @@ def _sheet(files, path, ncols=4, n=8):
     for ax, im in zip(axs.ravel(), imgs):
         ax.imshow(im)
     fig.subplots_adjust(0, 0, 1, 1, 0.01, 0.01)
-    fig.savefig(path, dpi=100)
+    fig.savefig(path, dpi=SHEET_DPI)
     plt.close(fig)
 
 
