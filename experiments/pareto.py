@@ -18,7 +18,9 @@ points change the model too (bulk modulus 1000 and 10000 Pa instead of the scene
 is how much the answer depends on compressibility; the volume error max over frames of mean |J - 1| is
 listed for every run.
 
-Usage: python -m experiments pareto [--quick]. Writes experiments/results/pareto[_quick].png/.md.
+Usage: python -m experiments pareto [--quick] [--scene hanging_plate|drop] [--no-3d]. Writes
+experiments/results/pareto[_quick].png/.md; with --scene or --no-3d (a partial study, e.g. a re-run after a
+scene file changed) it writes pareto_<scene...>[_2d][_quick].png/.md instead, never over the full results.
 """
 from __future__ import annotations
 
@@ -128,7 +130,7 @@ def variants(quick: bool):
             ("3D slab, 32 cells", dict(dim=3, cells=32))]
 
 
-def study(name: str, quick: bool):
+def study(name: str, quick: bool, no_3d: bool = False):
     ref_cells, ref_cfl = (48, 0.15) if quick else (REF_CELLS, REF_CFL)
     duration = DURATION[name] * (0.5 if quick else 1.0)
     ref = simulate(name, ref_cells, None, ref_cfl, "float64", 2, duration)
@@ -140,6 +142,8 @@ def study(name: str, quick: bool):
           f"{ref['seconds']:.0f} s", flush=True)
     rows = []
     for label, knobs in variants(quick):
+        if no_3d and knobs.get("dim", 2) == 3:
+            continue
         cfg = dict(BASE, **knobs)
         run = simulate(name, cfg["cells"], cfg["ppc"], cfg["cfl"], cfg["dtype"], cfg["dim"], duration, cfg["kappa"])
         if not np.all(np.isfinite(run["x"][run["active"]])):
@@ -168,13 +172,21 @@ def pareto_front(rows, key):
 
 
 def main(argv=None):
-    args = C.parse_args(__doc__, argv)
-    results = {name: study(name, args.quick) for name in ("hanging_plate", "drop")}
+    import argparse
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="reduced version (minutes on 2 cores)")
+    parser.add_argument("--scene", action="append", choices=tuple(DURATION), help="only this scene (repeatable)")
+    parser.add_argument("--no-3d", action="store_true", help="leave out the 3D point")
+    args = parser.parse_args(argv)
+    scenes = tuple(args.scene) if args.scene else tuple(DURATION)
+    name_out = NAME if (scenes == tuple(DURATION) and not args.no_3d) else \
+        "_".join([NAME, *scenes] + (["2d"] if args.no_3d else []))
+    results = {name: study(name, args.quick, args.no_3d) for name in scenes}
 
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    fig, axes = plt.subplots(2, 2, figsize=(13, 9))
+    fig, axes = plt.subplots(2, len(results), figsize=(6.5 * len(results), 9), squeeze=False)
     for col, (name, res) in enumerate(results.items()):
         for row, (key, title) in enumerate((("sil", "silhouette error 1 - IoU"), ("stress", "stress-field error"))):
             ax = axes[row, col]
@@ -189,7 +201,7 @@ def main(argv=None):
             ax.set_ylabel(title)
             ax.set_title(f"{name}: {title} vs time (red: Pareto front)", fontsize=9)
     fig.tight_layout()
-    C.save_fig(fig, NAME, args.quick)
+    C.save_fig(fig, name_out, args.quick)
 
     parts = [f"Foam {FOAM} (kappa, rho from the scene), {FRAMES} frames over {DURATION} s (half in quick runs). Base = "
              f"{BASE['cells']} cells across the domain width, default ppc (4 in 2D, 8 in 3D), CFL {BASE['cfl']}, float64. "
@@ -207,7 +219,11 @@ def main(argv=None):
             [[r["label"], r["particles"], r["steps"], r["seconds"], r["sil"], r["stress"], r["volume_error"],
               ("yes" if r["label"] in front_s else "no") + " / " + ("yes" if r["label"] in front_t else "no")]
              for r in res["rows"]]) + "\n")
-    C.write_md(NAME, args.quick, "Accuracy against speed", "".join(parts))
+    path = C.write_md(name_out, args.quick, "Accuracy against speed", "".join(parts))
+    if name_out != NAME:  # name the command that regenerates a partial study, not its output name
+        flags = "".join(f" --scene {n}" for n in scenes) + (" --no-3d" if args.no_3d else "")
+        text = path.read_text().replace(f"python -m experiments {name_out}", f"python -m experiments {NAME}{flags}", 1)
+        path.write_text(text)
 
 
 if __name__ == "__main__":

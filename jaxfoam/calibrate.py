@@ -95,11 +95,11 @@ DX_CHECK_ORDER = 1.0
 GCI_SAFETY = 1.25
 # The fit's default discretization and precision, from the measurements in experiments/MODEL_CHOICE.md
 # (its `defaults` block states the same values; tests/test_model_choice.py keeps the two equal).
-# Cells across the largest extent: 2D 64, the most accurate grid measured; 3D 32, the affordable one (section 1).
+# Cells across the largest extent: 2D 64, the best grid measured on the drop; 3D 32, the affordable one (section 1).
 FIT_CELLS = {2: 64, 3: 32}
-# Particles per cell: 1 is 2-10x less accurate, 9 costs 2.25x the particles for no gain (section 1).
+# Particles per cell: 1 is 2-10x less accurate; 9 costs 2.25x the particles and helps one scene of three (section 1).
 FIT_PPC = {2: 4, 3: 8}
-# CFL number: 3.3x margin to the first unstable CFL; CFL's effect on fitted parameters unmeasured (section 2).
+# CFL number: 3.3x margin to instability; larger CFL worsens the current hanging plate and channel flow (section 2).
 FIT_CFL = 0.3
 # Precision: float32 gradients are unmeasured and FTOL = 1e-7 sits at float32 round-off (section 2).
 FIT_DTYPE = "float64"
