@@ -77,6 +77,12 @@ def test_insert_conserves_mass_volume_momentum_and_respects_sdf_2d():
     mn = np.asarray(out.mass)[new]
     mo = np.asarray(out.mass)[act & ~new]
     assert 0.2 * np.median(mo) < np.median(mn) < 2.0 * np.median(mo)
+    # A whole pass (merge, then insertion) leaves no pair closer than the merge distance: insertion
+    # keeps insert_radius (> merge_radius) from every point.
+    xa = np.asarray(out.x)[act]
+    D = np.linalg.norm(xa[:, None] - xa[None], axis=-1)
+    np.fill_diagonal(D, np.inf)
+    assert D.min() >= cfg.merge_radius * cfg.spacing(DX, 2), (D.min(), cfg.merge_radius * cfg.spacing(DX, 2))
 
 
 def test_material_sdf_fills_gaps_but_keeps_wide_cavities():
