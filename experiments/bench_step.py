@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxfoam as jf
+from jaxfoam import from_components, to_components
 
 # Peer figures on the same 2-core machine (shared/perf/anchors.md), particle-steps/s.
 ANCHORS = {"taichi_2d_f32": 5.3e6, "jax_toy_2d_f32": 4.8e6, "jax_toy_2d_f64": 4.0e6,
@@ -48,9 +49,12 @@ def run_case(dim, n, cells, dtype, steps, repeats):
 
     @jax.jit
     def rollout(state, params):
+        # As in jaxfoam.simulate: the step runs on the component form of the state
+        # (jaxfoam.to_components), packed into (N, d, d) arrays only at the ends of the scan.
         def body(s, _):
             return jf.substep(s, params, scene, grid, dt), None
-        return jax.lax.scan(body, state, None, length=steps)[0]
+        s = jax.lax.scan(body, to_components(state), None, length=steps)[0]
+        return from_components(s)
 
     t0 = time.perf_counter()
     out = rollout(state, params)

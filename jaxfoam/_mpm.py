@@ -113,21 +113,47 @@ def _flat_index(base, offset, grid: Grid):
     return idx
 
 
+def to_components(state: State) -> State:
+    """The substep's working form: C, F and bbar_e as tuples of rows of (N,) component arrays.
+
+    Inside a rollout the state stays in this form from one substep to the next (structure of arrays).
+    Packing the components into (N, d, d) arrays every substep made XLA:CPU evaluate the shared
+    per-particle expressions once per matrix entry, in the forward step and far worse in its
+    transpose: the reverse-mode constitutive update ran at 10x its forward time packed, 1.6x unpacked.
+    """
+    if isinstance(state.F, tuple):
+        return state
+    return state.replace(C=T.comps(state.C), F=T.comps(state.F), bbar_e=T.comps(state.bbar_e))
+
+
+def from_components(state: State) -> State:
+    """Inverse of `to_components`: the public form with (N, d, d) and (N, 3, 3) arrays."""
+    if not isinstance(state.F, tuple):
+        return state
+    like = state.x[:, 0]
+    return state.replace(C=T.array(state.C, like), F=T.array(state.F, like), bbar_e=T.array(state.bbar_e, like))
+
+
+def _comps(a):
+    return a if isinstance(a, tuple) else T.comps(a)
+
+
 def p2g(state: State, params: Params, grid: Grid, dt) -> tuple[jax.Array, jax.Array]:
     """Particle to grid: scatter mass and momentum (including the MLS-MPM stress impulse).
 
     Returns (grid momentum (G, d) kg m/s, grid mass (G,) kg). Inactive particles carry zero mass
-    and volume and contribute nothing.
+    and volume and contribute nothing. `state` may be in either form (`to_components`).
     """
     x, d = state.x, state.dim
     base, fx, w = _stencil(x, grid)
     act = state.active.astype(x.dtype)
     mass = state.mass * act
     vol = state.vol0 * act
-    tau = _kirchhoff(T.comps(state.F), T.comps(state.bbar_e), params, d)
+    tau = _kirchhoff(_comps(state.F), _comps(state.bbar_e), params, d)
+    Cc = _comps(state.C)
     # MLS-MPM: the force on node i is -sum_p V0_p tau_p grad w_ip, with grad w = 4/dx^2 w (x_i - x_p).
     k_stress = (-dt * 4.0 / grid.dx ** 2) * vol
-    affine = [[k_stress * tau[i][j] + mass * state.C[:, i, j] for j in range(d)] for i in range(d)]
+    affine = [[k_stress * tau[i][j] + mass * Cc[i][j] for j in range(d)] for i in range(d)]
     mv = [mass * state.v[:, i] for i in range(d)]
     offs = _offsets(d)
     W, dpos = _stencil_terms(fx, w, offs, grid.dx)
@@ -209,6 +235,12 @@ def grid_update(grid_mv, grid_m, scene: Scene, grid: Grid, t, dt, colliders=()) 
 
 def g2p(state: State, grid_v, grid: Grid) -> tuple[jax.Array, jax.Array]:
     """Grid to particle: APIC velocity (N, d) m/s and affine matrix / velocity gradient C (N, d, d) 1/s."""
+    v, C = _g2p(state, grid_v, grid)
+    return v, T.array(C, state.x[:, 0])
+
+
+def _g2p(state: State, grid_v, grid: Grid):
+    """`g2p` with C returned as components (rows of (N,) arrays), 1/s."""
     x, d = state.x, state.dim
     base, fx, w = _stencil(x, grid)
     offs = _offsets(d)
@@ -216,6 +248,7 @@ def g2p(state: State, grid_v, grid: Grid) -> tuple[jax.Array, jax.Array]:
     gathered = grid_v.at[idx].get(mode="fill", fill_value=0.0).reshape(len(offs), x.shape[0], d)
     W, _ = _stencil_terms(fx, w, offs, grid.dx)
     offa = jnp.asarray(np.asarray(offs), x.dtype)
+    scale = 4.0 / grid.dx ** 2
 
     # The sum over offsets runs as a scan: its carry is materialized once. As an unrolled sum XLA:CPU
     # fused it into every consumer in the constitutive update and recomputed it there (3D: 5x slower).
@@ -223,30 +256,44 @@ def g2p(state: State, grid_v, grid: Grid) -> tuple[jax.Array, jax.Array]:
         v, C = carry
         g, wo, off = xs
         vi = wo[:, None] * g
-        dp = (off[None, :] - fx) * grid.dx
-        return (v + vi, C + vi[:, :, None] * dp[:, None, :]), None
+        dp = [(off[k] - fx[:, k]) * (grid.dx * scale) for k in range(d)]
+        return (v + vi, tuple(tuple(C[i][j] + vi[:, i] * dp[j] for j in range(d)) for i in range(d))), None
 
-    zero = (jnp.zeros_like(x), jnp.zeros(x.shape + (d,), x.dtype))
+    zc = jnp.zeros_like(x[:, 0])
+    zero = (jnp.zeros_like(x), tuple(tuple(zc for _ in range(d)) for _ in range(d)))
     (v, C), _ = jax.lax.scan(accumulate, zero, (gathered, W, offa))
-    return v, C * (4.0 / grid.dx ** 2)
+    return v, C
 
 
 def constitutive(state: State, v, C, params: Params, grid: Grid, dt) -> State:
-    """Advance F and bbar_e with f = I + dt C (eq. 11-16), advect positions, keep them on the grid."""
+    """Advance F and bbar_e with f = I + dt C (eq. 11-16), advect positions, keep them on the grid.
+
+    v (N, d) m/s and C (N, d, d) 1/s from `g2p`; returns the state in the form it was given in."""
+    new = _constitutive(to_components(state), v, _comps(C), params, grid, dt)
+    return new if isinstance(state.F, tuple) else from_components(new)
+
+
+def _constitutive(state: State, v, Cc, params: Params, grid: Grid, dt) -> State:
+    """`constitutive` on the component form (`to_components`), C given as components."""
     d = state.dim
-    fc = T.add_diag(T.scale(T.comps(C), dt), 1.0)
-    F = T.array(T.matmul(fc, T.comps(state.F)), state.x[:, 0])
-    bc, _, gamma = _return_map_components(T.comps(state.bbar_e), _pad3(fc), params, dt)
-    bbar = T.array(bc, state.x[:, 0])
+    like = state.x[:, 0]
+    fc = T.add_diag(T.scale(Cc, dt), 1.0)
+    F = T.matmul(fc, state.F)
+    bc, _, gamma = _return_map_components(state.bbar_e, _pad3(fc), params, dt)
     # Particles never leave the stencil-safe region (the walls stop them long before).
-    lo = jnp.asarray(grid.origin, C.dtype) + grid.dx
-    hi = jnp.asarray(grid.origin, C.dtype) + grid.dx * (jnp.asarray(grid.shape, C.dtype) - 2.0)
+    lo = jnp.asarray(grid.origin, like.dtype) + grid.dx
+    hi = jnp.asarray(grid.origin, like.dtype) + grid.dx * (jnp.asarray(grid.shape, like.dtype) - 2.0)
     x = jnp.clip(state.x + dt * v, lo[None, :], hi[None, :])
     keep = state.active
+
+    def keep_mat(new, old):
+        return tuple(tuple(jnp.where(keep, jnp.broadcast_to(jnp.asarray(n_, like.dtype), like.shape), o_)
+                           for n_, o_ in zip(rn, ro)) for rn, ro in zip(new, old))
+
+    zero = tuple(tuple(jnp.zeros_like(like) for _ in range(d)) for _ in range(d))
     return state.replace(
         x=jnp.where(keep[:, None], x, state.x), v=jnp.where(keep[:, None], v, 0.0),
-        C=jnp.where(keep[:, None, None], C, 0.0), F=jnp.where(keep[:, None, None], F, state.F),
-        bbar_e=jnp.where(keep[:, None, None], bbar, state.bbar_e),
+        C=keep_mat(Cc, zero), F=keep_mat(F, state.F), bbar_e=keep_mat(bc, state.bbar_e),
         gamma_dot=jnp.where(keep, gamma, 0.0), t=state.t + dt)
 
 
@@ -263,23 +310,34 @@ def substep(state: State, params: Params, scene: Scene, grid: Grid, dt, fracture
     Optional static stages: `colliders` (see `apply_colliders`), and `fracture`, an object with
     `apply(new_state, old_state, grid_m, grid) -> State` run after the constitutive update
     (`jaxfoam.fracture.FractureConfig`). With the defaults the step is the plain MLS-MPM step.
+    Returns the state in the form it was given in (arrays, or components: `to_components`).
     """
+    new = _substep(to_components(state), params, scene, grid, dt, fracture, colliders)
+    return new if isinstance(state.F, tuple) else from_components(new)
+
+
+def _substep(state: State, params: Params, scene: Scene, grid: Grid, dt, fracture=None, colliders=()) -> State:
+    """`substep` on the component form."""
     with jax.named_scope("p2g"):
         grid_mv, grid_m = p2g(state, params, grid, dt)
     with jax.named_scope("grid_update"):
         grid_v = grid_update(grid_mv, grid_m, scene, grid, state.t, dt, colliders)
     with jax.named_scope("g2p"):
-        v, C = g2p(state, grid_v, grid)
+        v, C = _g2p(state, grid_v, grid)
     with jax.named_scope("constitutive"):
-        new = constitutive(state, v, C, params, grid, dt)
+        new = _constitutive(state, v, C, params, grid, dt)
     if fracture is not None:
         with jax.named_scope("fracture"):
-            new = fracture.apply(new, state, grid_m, grid)
+            new = to_components(fracture.apply(from_components(new), from_components(state), grid_m, grid))
     return new
 
 
 def make_step(scene: Scene, grid: Grid, dt: float, fracture=None, colliders=()):
-    """Bind the static configuration once: returns the pure `step(state, params) -> state`."""
+    """Bind the static configuration once: returns the pure `step(state, params) -> state`.
+
+    The step returns the state in the form it is given: a loop of many steps runs faster on
+    `to_components(state)` (convert back with `from_components` when done), as `simulate` does.
+    """
 
     def step(state: State, params: Params) -> State:
         return substep(state, params, scene, grid, dt, fracture, colliders)

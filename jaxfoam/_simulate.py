@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._constitutive import deviatoric_stress_norm, det
-from ._mpm import Grid, make_grid, make_step, substep
+from ._mpm import Grid, _substep, from_components, make_grid, make_step, substep, to_components
 from ._params import Params
 from ._scene import Scene, init_state
 from ._state import State
@@ -98,14 +98,18 @@ def _rollout_impl(state0, params, scene, frame_times, frame_dts, grid, substeps,
     def frame(state, inputs):
         t_target, dt = inputs[:2]
 
+        # Within a frame the state is carried in component form (jaxfoam._mpm.to_components).
         def sub(s, i):
-            s = substep(s, params, scene, grid, dt, fracture, colliders)
+            s = _substep(s, params, scene, grid, dt, fracture, colliders)
             if resample is not None:
                 # Resampling pass after every `resample.every`-th substep of the whole rollout.
                 n = inputs[2] * substeps + i + 1
-                s = jax.lax.cond(n % resample.every == 0, lambda s: resample.apply(s, grid, n),
+                s = jax.lax.cond(n % resample.every == 0,
+                                 lambda s: to_components(resample.apply(from_components(s), grid, n)),
                                  lambda s: s, s)
             return s, None
+
+        state = to_components(state)
 
         xs = None if resample is None else jnp.arange(substeps)
         nb = substeps // CHECKPOINT_BLOCK if checkpoint else 0
@@ -120,7 +124,7 @@ def _rollout_impl(state0, params, scene, frame_times, frame_dts, grid, substeps,
                 state, _ = jax.lax.scan(sub, state, None if xs is None else xs[nb * CHECKPOINT_BLOCK:], length=rest)
         else:
             state, _ = jax.lax.scan(sub, state, xs, length=substeps)
-        state = state.replace(t=t_target)
+        state = from_components(state).replace(t=t_target)
         return state, (observe(state, params), _health(state))
 
     if checkpoint:
