@@ -84,7 +84,44 @@ COMPARE = {True: [("drop_2d", 0)], False: [("drop_2d", 0), ("squeeze_2d", 0), ("
 
 
 # Conclusions of the full run, written from its tables (appended to recovery.md only).
-VERDICT = ""
+VERDICT = """
+**Hanging-plate scene fixed before this run.** The foam used to be glued by a 5 mm overlap into a 2 cm
+board, less than one cell at the fit dx, so whether and when it tore off depended on how many node
+layers of the sticky board the overlap reached. Measured with (mu, sigma_y, eta, m) = (97.8 Pa, 24.3 Pa,
+2.69 Pa s^m, 0.69): mean height at t = 0.5 s 0.191 m at dx = 1 cm against 0.070 m at 5 mm, and moving
+the whole scene by 2.5-7.5 mm at dx = 1 cm moved the tear-off between t = 0.3 s and 0.7 s. The scene now
+glues a 2 cm layer into a 4 cm board: 0.120 m (dx 1 cm), 0.118 m (7 mm), 0.121 m (5 mm)
+(tests/test_plate_grip.py). A first-order sensitivity remains: the sticky face sits on node layers, and
+a 5 mm translation of the scene at dx = 1 cm still delays the tear-off by about 0.1 s.
+
+**Optimizer: use L-BFGS by default.** Same data, one start each, 20 iterations (Adam 40):
+drop set 0 L-BFGS reached loss 0.0048 in 2.5 min against LM 0.0071 (3.7 min, stopped on ftol) and Adam
+0.0089 (2.9 min); squeeze set 0 LM 0.00078, L-BFGS 0.00081, Adam 0.00099 (7.4, 9.3, 10.7 min), all below
+the loss at the truth (0.0022); hanging plate set 1 LM stopped at 0.051, 19x the loss at the truth
+(0.0027), with mu at 49 Pa, while L-BFGS went to 0.00061 with mu +7%, sigma_y -8%, eta -5%, m -0.14, the
+only fit of the study that meets the mu and sigma_y goals. Gauss-Newton steps follow the local Jacobian
+of a rollout whose tear-off time jumps with the parameters; the L-BFGS line search on the loss itself
+did not get trapped. The Gauss-Newton covariance is computed at the optimum whichever optimizer found it,
+so L-BFGS loses nothing in the intervals. With one start none of the three is reliable on its own:
+keep the multi-start for real data.
+
+**What each scene constrains (fit dx 1 cm against data at 5 mm).**
+- mu (elastic sag and rebound): identifiable in every drop and hanging-plate fit; drop +10%, +29%,
+  hanging plate +15% (set 0), +7% (set 1, L-BFGS). The squeeze overestimates it (+76%, +180%).
+- sigma_y: set by the hanging plate when the foam tears off (set 1, L-BFGS: -8%) and by the squeeze's
+  permanent set (LM reports it identifiable, but -34% and -51%). Not identifiable from the drop (only
+  15-17% of particle-frames yield, during the impact) nor from a hanging slab that holds (set 0:
+  sigma_y = 49 Pa against rho g L = 51 Pa; 15% of particle-frames yield, at 0.005-0.6 1/s).
+- eta and m: not separated by any scene. The yielding particle-frames see plastic rates of 0.005-0.6
+  1/s (hanging, set 0), 0.1-2.6 1/s (hanging, set 1), 0.02-3.7 1/s (squeeze) and 0.01-33 1/s only
+  during the drop's impact; eta gamma_dot^m is then either small against sigma_y or seen too briefly,
+  and eta and m trade off (|correlation| >= 0.98 in every fit; the notes name the direction).
+- The fit grid's bias dominates what is left: in 5 of the 6 LM fits the loss at the truth on the 1 cm
+  grid is 1.4-3.1x the fitted loss, so that grid's optimum is not at the truth. The fitter's
+  discretization check measures this (numerical error above the statistical one in every fit) and
+  widens the intervals, which is why the truth is inside them while the errors are large. Meeting the
+  issue's 10% goals needs a finer fit grid (7 mm or less, about 3x the cost) as well as multi-start.
+"""
 
 
 def truth_sets() -> list[dict]:
