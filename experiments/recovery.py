@@ -98,16 +98,20 @@ a 5 mm translation of the scene at dx = 1 cm still delays the tear-off by about 
 drop set 0 L-BFGS reached loss 0.0048 in 2.5 min against LM 0.0071 (3.7 min, stopped on ftol) and Adam
 0.0089 (2.9 min); squeeze set 0 LM 0.00078, L-BFGS 0.00081, Adam 0.00099 (7.4, 9.3, 10.7 min), all below
 the loss at the truth (0.0022); hanging plate set 1 LM stopped at 0.051, 19x the loss at the truth
-(0.0027), with mu at 49 Pa, while L-BFGS went to 0.00061 with mu +7%, sigma_y -8%, eta -5%, m -0.14, the
-only fit of the study that meets the mu and sigma_y goals. Gauss-Newton steps follow the local Jacobian
-of a rollout whose tear-off time jumps with the parameters; the L-BFGS line search on the loss itself
-did not get trapped. The Gauss-Newton covariance is computed at the optimum whichever optimizer found it,
+(0.0027), with mu at 49 Pa, while L-BFGS went to 0.00061 with mu +7%, sigma_y -8%, eta -5%, m -0.14
+(23.4 min). Adam passed through the same basin at its iteration 4 (loss 0.00064: mu -3%, sigma_y -7%,
+eta -1%, m -0.10; reported, as the fitter reports the best iterate) but its momentum carried it out and
+it ended at 0.066. These two are the only fits of the study that meet the mu and sigma_y goals.
+Gauss-Newton steps follow the local Jacobian of a rollout whose tear-off time jumps with the
+parameters; the L-BFGS line search on the loss itself did not get trapped, and unlike Adam it does not
+leave a basin once in it. The Gauss-Newton covariance is computed at the optimum whichever optimizer found it,
 so L-BFGS loses nothing in the intervals. With one start none of the three is reliable on its own:
 keep the multi-start for real data.
 
 **What each scene constrains (fit dx 1 cm against data at 5 mm).**
 - mu (elastic sag and rebound): identifiable in every drop and hanging-plate fit; drop +10%, +29%,
-  hanging plate +15% (set 0), +7% (set 1, L-BFGS). The squeeze overestimates it (+76%, +180%).
+  hanging plate +15% (set 0), +7% (set 1, L-BFGS; LM -71%, stuck). The squeeze overestimates it
+  (+76%, +180%).
 - sigma_y: set by the hanging plate when the foam tears off (set 1, L-BFGS: -8%) and by the squeeze's
   permanent set (LM reports it identifiable, but -34% and -51%). Not identifiable from the drop (only
   15-17% of particle-frames yield, during the impact) nor from a hanging slab that holds (set 0:
