@@ -99,7 +99,7 @@ drop set 0 L-BFGS reached loss 0.0048 in 2.5 min against LM 0.0071 (3.7 min, sto
 0.0089 (2.9 min); squeeze set 0 LM 0.00078, L-BFGS 0.00081, Adam 0.00099 (7.4, 9.3, 10.7 min), all below
 the loss at the truth (0.0022); hanging plate set 1 LM stopped at 0.051, 19x the loss at the truth
 (0.0027), with mu at 49 Pa, while L-BFGS went to 0.00061 with mu +7%, sigma_y -8%, eta -5%, m -0.14
-(23.4 min). Adam passed through the same basin at its iteration 4 (loss 0.00064: mu -3%, sigma_y -7%,
+(23.4 min). Adam passed through the same basin at its iteration 4 (loss 0.00064: mu -3%, sigma_y -7.5%,
 eta -1%, m -0.10; reported, as the fitter reports the best iterate) but its momentum carried it out and
 it ended at 0.066. These two are the only fits of the study that meet the mu and sigma_y goals.
 Gauss-Newton steps follow the local Jacobian of a rollout whose tear-off time jumps with the
