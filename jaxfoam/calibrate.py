@@ -47,6 +47,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import fitting
+from fitting.uncertainty import DEFAULT_MAX_RELATIVE_WIDTH
 
 from ._params import FIT_FIELDS, Params
 from ._scene import Scene, init_state
@@ -93,6 +94,9 @@ DX_CHECK_ORDER = 1.0
 # convergence order that is assumed rather than measured on three grids would call for 3; we take the
 # first-order assumption, itself conservative against second order, with the smaller factor).
 GCI_SAFETY = 1.25
+# A parameter whose reported interval covers at least this fraction of its bounds is not identifiable:
+# the data then say no more than the bounds do (e.g. m in [0.25, 1.5] with bounds [0.2, 1.5]).
+BOUND_SPAN_FRACTION = 0.9
 # The fit's default discretization and precision, from the measurements in experiments/MODEL_CHOICE.md
 # (its `defaults` block states the same values; tests/test_model_choice.py keeps the two equal).
 # Cells across the largest extent: 2D 64, the best grid measured on the drop; 3D 32, the affordable one (section 1).
@@ -644,6 +648,32 @@ def combine_intervals(unc: fitting.Uncertainty, error_z, transform: fitting.Para
 # The fit
 # ----------------------------------------------------------------------------------------------
 
+def judge_reported_intervals(interval: dict, params: dict, transform, identifiable: dict):
+    """Identifiability judged again on the reported intervals (statistical and numerical combined).
+
+    A parameter is not identifiable when its interval is wider than DEFAULT_MAX_RELATIVE_WIDTH times
+    its value, covers at least BOUND_SPAN_FRACTION of its bounds, or is unbounded. Args: interval
+    name -> (lo, hi) and params name -> value in physical units; transform the fit's
+    `fitting.ParameterTransform` (its names and bounds); identifiable name -> bool from the
+    statistical check. Returns (updated identifiable dict, list of notes for the changed ones).
+    """
+    out, notes = dict(identifiable), []
+    for i, n in enumerate(transform.names):
+        lo, hi = interval[n]
+        value = float(params[n])
+        span = float(transform.upper[i]) - float(transform.lower[i])
+        wide = (hi - lo) > DEFAULT_MAX_RELATIVE_WIDTH * max(abs(value), np.finfo(np.float64).tiny)
+        fills = math.isfinite(span) and (hi - lo) >= BOUND_SPAN_FRACTION * span
+        if out.get(n, False) and (wide or fills or not (math.isfinite(lo) and math.isfinite(hi))):
+            out[n] = False
+            why = (f"covers {100 * (hi - lo) / span:.0f}% of its bounds [{transform.lower[i]:.4g}, "
+                   f"{transform.upper[i]:.4g}]" if fills
+                   else f"is wider than {DEFAULT_MAX_RELATIVE_WIDTH:g} times its value {value:.4g}")
+            notes.append(f"{n} is not identifiable from these data: its reported interval [{lo:.4g}, {hi:.4g}] "
+                         f"(statistical and numerical error combined) {why}.")
+    return out, notes
+
+
 def make_optimizer(name: str):
     """The `fitting` optimizer for "lm", "lbfgs" or "adam"."""
     if name == "lm":
@@ -799,6 +829,8 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
                                  f"the interval.")
             dx_check = dict(ratio=DX_CHECK_RATIO, order=DX_CHECK_ORDER, safety=GCI_SAFETY,
                             shift_z=[float(v) for v in shift_z], error_z=[float(v) for v in err_z])
+        identifiable, more = judge_reported_intervals(interval, params, tr, identifiable)
+        notes.extend(more)
         notes = tuple(notes)
     else:
         stat = interval = {n: (-math.inf, math.inf) for n in names}

@@ -139,3 +139,22 @@ def test_pixel_level_matches_particle_spacing():
     assert choose_pixel_level(0.0025, 0.005, (48, 96)) == 1
     assert choose_pixel_level(0.0025, 0.0049, (48, 96)) == 0
     assert choose_pixel_level(0.001, 0.1, (40, 400)) == 2
+
+
+def test_reported_interval_that_fills_the_bounds_is_not_identifiable():
+    """Identifiability contract on the reported (statistical + numerical) interval: an m whose
+    interval covers >= 90% of its bounds [0.2, 1.5], or a mu interval wider than its value, is
+    flagged with a note; a narrow interval keeps its flag."""
+    import fitting
+    from jaxfoam.calibrate import judge_reported_intervals
+    tr = fitting.ParameterTransform.create(["mu", "m"], positive=["mu"], bounds={"m": (0.2, 1.5)})
+    params = {"mu": 200.0, "m": 1.5}
+    # m: [0.25, 1.5] is 96% of the bounds (relative width only 0.83, so the old rule kept it)
+    ident, notes = judge_reported_intervals({"mu": (190.0, 210.0), "m": (0.25, 1.5)}, params, tr,
+                                            {"mu": True, "m": True})
+    assert ident == {"mu": True, "m": False}
+    assert len(notes) == 1 and "m is not identifiable" in notes[0] and "96% of its bounds" in notes[0]
+    # mu: width 250 > 1.0 x 200
+    ident, notes = judge_reported_intervals({"mu": (50.0, 300.0), "m": (1.4, 1.5)}, params, tr,
+                                            {"mu": True, "m": True})
+    assert ident == {"mu": False, "m": True} and "wider than 1 times its value 200" in notes[0]
