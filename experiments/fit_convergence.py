@@ -228,6 +228,7 @@ def plot(recs, scenes, fits, quick) -> None:
                 ax.set_yscale("log")
             ax.set_title(f"{s}: {n}", fontsize=9)
             ax.set_xlabel("fit cells across the largest extent")
+            ax.set_xlim(min(c for c, _ in fits) - 6, max(c for c, _ in fits) + 8)
     axes[0, 0].legend(fontsize=7)
     fig.suptitle("Fitted parameters against fit resolution (thick: statistical 95%, thin: combined 95%)",
                  fontsize=10)
