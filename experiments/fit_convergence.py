@@ -146,10 +146,11 @@ def report(quick: bool) -> None:
             f"`synthesize` with noise {NOISE}, {int(100 * DROP_FRAMES)}% of frames dropped, {PIXEL_SIZE} m pixels. "
             f"Each fit: Levenberg-Marquardt from the truth (one start, range +-{START_HALF_WIDTH:g} relative), at "
             f"most {QUICK_ITERS if quick else FULL_ITERS} iterations, the fitter's bounds, discretization check "
-            f"and 95% intervals (combined = statistical and numerical in quadrature). Fits "
-            f"{', '.join(f'{c} / {p}' for c, p in sorted(FROM_REFERENCE))} instead start at the reference fit's "
-            f"optimum with at most {REFINE_ITERS} iterations (2.25x the particles per iteration; from there "
-            f"they only move as far as the particle count moves the optimum). `loss@start` is the loss of "
+            f"and 95% intervals (combined = statistical and numerical in quadrature). " + (
+                f"Fits {', '.join(f'{c} / {p}' for c, p in sorted(FROM_REFERENCE))} instead start at the "
+                f"reference fit's optimum with at most {REFINE_ITERS} iterations (2.25x the particles per "
+                f"iteration; from there they only move as far as the particle count moves the optimum). "
+                if FROM_REFERENCE & set(fits) else "") + f"`loss@start` is the loss of "
             f"the start on that grid (the truth, or the reference optimum). All fits ran 2-3 at a time on "
             f"the shared 2-core machine (load average about 6), so wall times are inflated and compare only "
             f"roughly.\n"]
