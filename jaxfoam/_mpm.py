@@ -84,7 +84,11 @@ def _stencil(x, grid: Grid):
     base = jnp.floor(xg - 0.5)
     fx = xg - base
     w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
-    return base.astype(jnp.int32), fx, w
+    # Every stencil index is kept inside the grid (a no-op for active particles, which `constitutive`
+    # keeps in the stencil-safe region; it bounds inactive or non-finite ones), so the gather and the
+    # scatter need no bounds checks (XLA:CPU's checked gather is 2x slower).
+    hi = jnp.asarray(grid.shape, jnp.int32) - 3
+    return jnp.clip(base.astype(jnp.int32), 0, hi[None, :]), fx, w
 
 
 def _offsets(d):
@@ -166,7 +170,7 @@ def p2g(state: State, params: Params, grid: Grid, dt) -> tuple[jax.Array, jax.Ar
     cols = [W * (mvA[None, :, i] + sum(A[None, :, i, k] * dpos[k] for k in range(d))) for i in range(d)]
     vals = jnp.stack(cols + [W * mass[None]], axis=-1).reshape(-1, d + 1)
     idx = jnp.concatenate([_flat_index(base, off, grid) for off in offs])
-    grid_mv = jnp.zeros((grid.num_nodes, d + 1), x.dtype).at[idx].add(vals, mode="drop")
+    grid_mv = jnp.zeros((grid.num_nodes, d + 1), x.dtype).at[idx].add(vals, mode="promise_in_bounds")
     return grid_mv[:, :d], grid_mv[:, d]
 
 
@@ -245,7 +249,7 @@ def _g2p(state: State, grid_v, grid: Grid):
     base, fx, w = _stencil(x, grid)
     offs = _offsets(d)
     idx = jnp.concatenate([_flat_index(base, off, grid) for off in offs])
-    gathered = grid_v.at[idx].get(mode="fill", fill_value=0.0).reshape(len(offs), x.shape[0], d)
+    gathered = grid_v.at[idx].get(mode="promise_in_bounds").reshape(len(offs), x.shape[0], d)
     W, _ = _stencil_terms(fx, w, offs, grid.dx)
     offa = jnp.asarray(np.asarray(offs), x.dtype)
     scale = 4.0 / grid.dx ** 2
