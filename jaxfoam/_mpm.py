@@ -95,18 +95,16 @@ def _offsets(d):
     return list(itertools.product(range(3), repeat=d))
 
 
-def _stencil_terms(fx, w, offs, dx):
-    """Per-offset weights W (K, N) and offsets from the particle dpos: d arrays (K, N), m."""
-    d = fx.shape[-1]
+def _stencil_weights(w, offs):
+    """Per-offset B-spline weights W (K, N): the product over axes of the 1D weights `w`."""
+    d = w[0].shape[-1]
     W = []
     for off in offs:
         weight = w[off[0]][:, 0]
         for k in range(1, d):
             weight = weight * w[off[k]][:, k]
         W.append(weight)
-    offa = np.asarray(offs)
-    dpos = [(jnp.asarray(offa[:, k], fx.dtype)[:, None] - fx[None, :, k]) * dx for k in range(d)]
-    return jnp.stack(W), dpos
+    return jnp.stack(W)
 
 
 def _flat_index(base, offset, grid: Grid):
@@ -160,7 +158,9 @@ def p2g(state: State, params: Params, grid: Grid, dt) -> tuple[jax.Array, jax.Ar
     affine = [[k_stress * tau[i][j] + mass * Cc[i][j] for j in range(d)] for i in range(d)]
     mv = [mass * state.v[:, i] for i in range(d)]
     offs = _offsets(d)
-    W, dpos = _stencil_terms(fx, w, offs, grid.dx)
+    W = _stencil_weights(w, offs)
+    offa = np.asarray(offs)
+    dpos = [(jnp.asarray(offa[:, k], x.dtype)[:, None] - fx[None, :, k]) * grid.dx for k in range(d)]  # (K, N) m
     # All stencil offsets in one broadcast expression (K, N, d + 1): one loop fusion feeding one
     # fused scatter-add (written per offset and concatenated, XLA:CPU recomputed the stress per offset).
     # The per-particle payload is stacked first: XLA:CPU then computes the stress once per particle,
@@ -250,7 +250,7 @@ def _g2p(state: State, grid_v, grid: Grid):
     offs = _offsets(d)
     idx = jnp.concatenate([_flat_index(base, off, grid) for off in offs])
     gathered = grid_v.at[idx].get(mode="promise_in_bounds").reshape(len(offs), x.shape[0], d)
-    W, _ = _stencil_terms(fx, w, offs, grid.dx)
+    W = _stencil_weights(w, offs)
     offa = jnp.asarray(np.asarray(offs), x.dtype)
     scale = 4.0 / grid.dx ** 2
 
