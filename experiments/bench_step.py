@@ -3,6 +3,8 @@
 Cases (the classic mpm88 sizes of shared/perf/anchors.md):
   2D: 8,192 particles, 128^2 cells;  3D: 32,768 particles, 64^3 cells; float32 and float64.
 Each case: compile time of a jitted lax.scan of STEPS substeps, then the median of REPEATS timed runs.
+A timed run is one frame as `jaxfoam.simulate` runs it: particles sorted by grid cell, the substeps,
+the original order restored (sort included in the time); the same without sorting is reported beside it.
 Writes experiments/bench_step.md next to this script. Usage: python experiments/bench_step.py [--quick]
 """
 from __future__ import annotations
@@ -44,18 +46,25 @@ def make_case(dim, n, cells, dtype):
     return scene, state, params, grid, dt
 
 
-def run_case(dim, n, cells, dtype, steps, repeats):
-    scene, state, params, grid, dt = make_case(dim, n, cells, dtype)
-
+def make_rollout(scene, grid, dt, steps, sort):
     @jax.jit
     def rollout(state, params):
         # As in jaxfoam.simulate: the step runs on the component form of the state
-        # (jaxfoam.to_components), packed into (N, d, d) arrays only at the ends of the scan.
+        # (jaxfoam.to_components), packed into (N, d, d) arrays only at the ends of the scan, and the
+        # particles are sorted by cell for the frame (jaxfoam.sort_by_cell) and put back after it.
         def body(s, _):
             return jf.substep(s, params, scene, grid, dt), None
-        s = jax.lax.scan(body, to_components(state), None, length=steps)[0]
+        s = to_components(state)
+        if sort:
+            s, perm = jf.sort_by_cell(s, grid)
+        s = jax.lax.scan(body, s, None, length=steps)[0]
+        if sort:
+            s = jf.unsort(s, perm)
         return from_components(s)
+    return rollout
 
+
+def time_runs(rollout, state, params, repeats):
     t0 = time.perf_counter()
     out = rollout(state, params)
     jax.block_until_ready(out)
@@ -65,11 +74,20 @@ def run_case(dim, n, cells, dtype, steps, repeats):
         t0 = time.perf_counter()
         jax.block_until_ready(rollout(state, params))
         times.append(time.perf_counter() - t0)
+    return out, compile_s, times
+
+
+def run_case(dim, n, cells, dtype, steps, repeats):
+    scene, state, params, grid, dt = make_case(dim, n, cells, dtype)
+    out, compile_s, times = time_runs(make_rollout(scene, grid, dt, steps, True), state, params, repeats)
+    _, _, times_unsorted = time_runs(make_rollout(scene, grid, dt, steps, False), state, params, repeats)
+
     if not bool(jnp.all(jnp.isfinite(out.x))):
         raise RuntimeError(f"benchmark case {dim}D went non-finite")
     med = statistics.median(times)
     return dict(dim=dim, n=n, cells=cells, dtype=jnp.dtype(dtype).name, steps=steps, compile_s=compile_s,
-                median_s=med, rate=n * steps / med, best_rate=n * steps / min(times))
+                median_s=med, rate=n * steps / med, best_rate=n * steps / min(times),
+                rate_unsorted=n * steps / statistics.median(times_unsorted))
 
 
 def main(argv=None):
@@ -94,11 +112,11 @@ def main(argv=None):
              f"Machine: {platform.machine()}, {os.cpu_count()} cores; JAX {jax.__version__}; "
              f"steps per timed run: 2D {steps}, 3D {max(steps // 4, 5)}; median and best of {repeats} runs "
              "(ratios use the median).", "",
-             "| case | particles | grid | dtype | M particle-steps/s (median) | best | vs Taichi toy 2D f32 (5.3 M) | vs JAX toy (same dim) | vs Taichi 3D f64 (1.4 M) | compile s |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "| case | particles | grid | dtype | M particle-steps/s (median) | best | unsorted (median) | vs Taichi toy 2D f32 (5.3 M) | vs JAX toy (same dim) | vs Taichi 3D f64 (1.4 M) | compile s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         toy = ANCHORS["jax_toy_2d_f32" if r["dtype"] == "float32" else "jax_toy_2d_f64"] if r["dim"] == 2 else ANCHORS["jax_toy_3d"]
-        lines.append(f"| {r['dim']}D | {r['n']} | {r['cells']}^{r['dim']} | {r['dtype']} | {r['rate'] / 1e6:.2f} | {r['best_rate'] / 1e6:.2f} | "
+        lines.append(f"| {r['dim']}D | {r['n']} | {r['cells']}^{r['dim']} | {r['dtype']} | {r['rate'] / 1e6:.2f} | {r['best_rate'] / 1e6:.2f} | {r['rate_unsorted'] / 1e6:.2f} | "
                      f"{r['rate'] / ANCHORS['taichi_2d_f32']:.2f} | {r['rate'] / toy:.2f} | "
                      f"{r['rate'] / ANCHORS['taichi_3d_f64']:.2f} | {r['compile_s']:.1f} |")
     by = {(r["dim"], r["dtype"]): r["rate"] for r in rows}

@@ -10,8 +10,8 @@ if _os.environ.get("JAXFOAM_X64", "1") != "0":
 from ._constitutive import (det, dev, energy_density, hb_rate, hb_steady_shear_stress, kirchhoff_stress,
                             return_map, deviatoric_stress_norm)
 from ._jacobian import ObservableJacobian, make_observable_jacobian, observable_jacobian
-from ._mpm import (Grid, apply_colliders, from_components, g2p, grid_update, make_grid, make_step, p2g, substep,
-                   to_components)
+from ._mpm import (Grid, apply_colliders, from_components, g2p, grid_update, make_grid, make_step, p2g, sort_by_cell,
+                   substep, to_components, unsort)
 from ._params import Params
 from ._scene import Plate, Scene, SceneError, init_state, load_scene, sample_particles
 from ._simulate import CFL, SimulationError, Simulator, Trajectory, simulate, stable_dt, wave_speed
@@ -27,4 +27,5 @@ __all__ = [
     "energy_density", "deviatoric_stress_norm", "hb_steady_shear_stress", "det", "dev", "simulate",
     "stable_dt", "wave_speed", "CFL", "save_trajectory", "load_trajectory", "SavedTrajectory", "TrajectoryError",
     "observable_jacobian", "make_observable_jacobian", "ObservableJacobian", "to_components", "from_components",
+    "sort_by_cell", "unsort",
 ]

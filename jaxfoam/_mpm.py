@@ -136,6 +136,31 @@ def from_components(state: State) -> State:
     return state.replace(C=T.array(state.C, like), F=T.array(state.F, like), bbar_e=T.array(state.bbar_e, like))
 
 
+def _permute(state: State, perm) -> State:
+    """Every per-particle leaf (full or component form) reordered as leaf[perm]; t unchanged."""
+    return jax.tree_util.tree_map(lambda a: a[perm] if jnp.ndim(a) >= 1 else a, state)
+
+
+def sort_by_cell(state: State, grid: Grid) -> tuple[State, jax.Array]:
+    """The particles reordered by grid cell (row-major cell index; inactive slots last).
+
+    Returns (sorted state, perm) with sorted = original[perm]; `unsort(sorted, perm)` restores the
+    order. Particles that share a stencil then scatter to and gather from neighbouring memory: on
+    randomly ordered particles the step ran 17% (2D) and 26% (3D) faster sorted (experiments/bench_step.md).
+    The permutation is data, not differentiated: gradients flow through the reordering unchanged.
+    """
+    base = _stencil(jax.lax.stop_gradient(state.x), grid)[0]
+    key = jnp.where(state.active, _flat_index(base, (0,) * grid.dim, grid), grid.num_nodes)
+    perm = jnp.argsort(key, stable=True)
+    return _permute(state, perm), perm
+
+
+def unsort(state: State, perm) -> State:
+    """Inverse of `sort_by_cell`: the slots back in their original order."""
+    inv = jnp.zeros_like(perm).at[perm].set(jnp.arange(perm.shape[0], dtype=perm.dtype))
+    return _permute(state, inv)
+
+
 def _comps(a):
     return a if isinstance(a, tuple) else T.comps(a)
 

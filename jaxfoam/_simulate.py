@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._constitutive import deviatoric_stress_norm, det
-from ._mpm import Grid, _substep, from_components, make_grid, make_step, to_components
+from ._mpm import Grid, _substep, from_components, make_grid, make_step, sort_by_cell, to_components, unsort
 from ._params import Params
 from ._scene import Scene, init_state
 from ._state import State
@@ -28,6 +28,10 @@ STATE_FIELDS = ("x", "v", "C", "F", "bbar_e")
 # the gradient's working memory fell from 762 MB to under 100 MB (experiments/bench_grad.md); blocks
 # of 1, 2, 4 and 8 substeps ran equally fast. The forward computation is unchanged.
 CHECKPOINT_BLOCK = 4
+# Reorder the particles by grid cell at the start of every frame (and restore the order at its end,
+# so particle i stays particle i in every output): scatter and gather then touch neighbouring memory;
+# +17% (2D) / +26% (3D) particle-steps/s on randomly ordered particles, for one argsort per frame.
+SORT_BY_CELL = True
 
 
 class SimulationError(FloatingPointError):
@@ -94,7 +98,7 @@ class Plan:
 
 
 def _rollout_impl(state0, params, scene, frame_times, frame_dts, grid, substeps, observe, checkpoint,
-                  resample=None, fracture=None, colliders=()):
+                  resample=None, fracture=None, colliders=(), sort=SORT_BY_CELL):
     def frame(state, inputs):
         t_target, dt = inputs[:2]
 
@@ -110,6 +114,8 @@ def _rollout_impl(state0, params, scene, frame_times, frame_dts, grid, substeps,
             return s, None
 
         state = to_components(state)
+        if sort:
+            state, perm = sort_by_cell(state, grid)
 
         xs = None if resample is None else jnp.arange(substeps)
         nb = substeps // CHECKPOINT_BLOCK if checkpoint else 0
@@ -124,6 +130,8 @@ def _rollout_impl(state0, params, scene, frame_times, frame_dts, grid, substeps,
                 state, _ = jax.lax.scan(sub, state, None if xs is None else xs[nb * CHECKPOINT_BLOCK:], length=rest)
         else:
             state, _ = jax.lax.scan(sub, state, xs, length=substeps)
+        if sort:
+            state = unsort(state, perm)
         state = from_components(state).replace(t=t_target)
         return state, (observe(state, params), _health(state))
 
@@ -138,7 +146,7 @@ def _rollout_impl(state0, params, scene, frame_times, frame_dts, grid, substeps,
 
 
 _rollout_jit = jax.jit(_rollout_impl, static_argnames=("grid", "substeps", "observe", "checkpoint", "resample",
-                                                       "fracture", "colliders"))
+                                                       "fracture", "colliders", "sort"))
 
 
 class Simulator:
@@ -158,6 +166,7 @@ class Simulator:
         `resample.capacity_factor` times the sampled number of slots.
       fracture: a `jaxfoam.fracture.FractureConfig` (or None): the fracture stage of each substep.
       colliders: a tuple of extra colliders (e.g. `jaxfoam.sdf.SDFCollider`), applied on the grid.
+      sort: reorder particles by grid cell during each frame (SORT_BY_CELL; outputs keep the order).
     Attributes: grid, state0, plan, dt (largest substep, s), substeps, step (the pure
       `step(state, params)` at dt).
     """
@@ -165,7 +174,8 @@ class Simulator:
     def __init__(self, scene: Scene, frame_times, params: Params, dx: float, ppc: int | None = None,
                  dtype=jnp.float64, cfl: float = CFL, first_mask=None, seed: int = 0,
                  capacity: int | None = None, max_speed: float | None = None, substeps: int | None = None,
-                 state0: State | None = None, resample=None, fracture=None, colliders=()):
+                 state0: State | None = None, resample=None, fracture=None, colliders=(),
+                 sort: bool = SORT_BY_CELL):
         params.validate()
         if not (isinstance(dx, (int, float)) and dx > 0 and math.isfinite(dx)):
             raise ValueError(f"dx must be a positive grid spacing in m, got {dx!r}")
@@ -187,6 +197,7 @@ class Simulator:
             scene, dx, ppc, rho=float(params.rho), seed=seed, first_mask=first_mask, capacity=capacity,
             dtype=dtype)
         self.resample, self.fracture, self.colliders = resample, fracture, tuple(colliders)
+        self.sort = bool(sort)
         if resample is not None:
             resample.validate(scene.dim)
             if capacity is None:
@@ -229,7 +240,7 @@ class Simulator:
         scene = jax.tree_util.tree_map(lambda a: jnp.asarray(a, self.dtype), scene)
         return _rollout_jit(state0, params, scene, jnp.asarray(self.plan.frame_times, self.dtype),
                             jnp.asarray(self.plan.frame_dts, self.dtype), self.grid, self.plan.substeps,
-                            observe, checkpoint, self.resample, self.fracture, self.colliders)
+                            observe, checkpoint, self.resample, self.fracture, self.colliders, self.sort)
 
     def check(self, frames, health) -> None:
         """Raise SimulationError naming the first frame, time, quantity and particle that went bad."""
