@@ -52,6 +52,8 @@ from fitting.uncertainty import DEFAULT_MAX_RELATIVE_WIDTH
 from ._params import FIT_FIELDS, Params
 from ._scene import Scene, init_state
 from ._simulate import Simulator, _rollout_jit
+from .fracture import FractureConfig
+from .resample import ResampleConfig
 from .io import Camera, Silhouettes, read_silhouettes
 from .silhouette import (BSPLINE_SUPPORT, RenderConfig, make_render_config, make_target, particle_spacing,
                          pyramid, render_frames, residuals)
@@ -107,6 +109,10 @@ FIT_PPC = {2: 4, 3: 8}
 FIT_CFL = 0.3
 # Precision: float32 gradients are unmeasured and FTOL = 1e-7 sits at float32 round-off (section 2).
 FIT_DTYPE = "float64"
+# Particle resampling and fracture in the fit's rollouts: off (None) by default; what switching them on
+# does to the fitted parameters and the cost is in section 4 (experiments/results/fit_features.md).
+FIT_RESAMPLE = None
+FIT_FRACTURE = None
 
 
 class CalibrationError(ValueError):
@@ -139,6 +145,20 @@ class FitSettings:
       distance_weight, chamfer_weight: weights of the distance-field terms in the residual.
       dx_check: estimate the numerical (discretization) error of the estimate from one more rollout with
         grid spacing DX_CHECK_RATIO dx and widen the intervals by it (see `discretization_error`).
+      resample: particle resampling in every rollout of the fit (loss, Jacobian, discretization check,
+        pictures): None or False (off, FIT_RESAMPLE), True (a default `jaxfoam.resample.ResampleConfig`),
+        a dict of its fields, or a ResampleConfig. Its target ppc, if not given, is the fit's ppc (which
+        must then be k^d); the initial state gets `capacity_factor` times the sampled slots.
+      fracture: the fracture stage in every substep of the fit's rollouts: None or False (off,
+        FIT_FRACTURE), True (a default `jaxfoam.fracture.FractureConfig`), a dict, or a FractureConfig.
+
+    With resampling or fracture on, the Jacobian (and so the optimizer's steps and the Gauss-Newton
+    intervals) is the derivative of the rollout with the discrete decisions held fixed: which points
+    merge, which candidates are inserted where (and the material SDF that admits them), and which points
+    are weak, are made on stop-gradient values and enter as data. The mass-weighted transfers that follow
+    a decision, and the strain release of a weak point, are differentiated. Between decision flips the
+    loss is smooth and the Jacobian exact; at a flip the loss jumps, which no derivative sees (a
+    finite-difference or line-search step across it may see a different loss than the model predicts).
     """
 
     dx: float | None = None
@@ -156,6 +176,13 @@ class FitSettings:
     distance_weight: float = 1.0
     chamfer_weight: float = 1.0
     dx_check: bool = True
+    resample: object = FIT_RESAMPLE
+    fracture: object = FIT_FRACTURE
+
+    def __post_init__(self):
+        # True / dict -> the config object (frozen dataclass: set through object.__setattr__).
+        object.__setattr__(self, "resample", _as_config(self.resample, ResampleConfig, "resample"))
+        object.__setattr__(self, "fracture", _as_config(self.fracture, FractureConfig, "fracture"))
 
     def validate(self) -> "FitSettings":
         if self.optimizer not in OPTIMIZERS:
@@ -189,7 +216,37 @@ class FitSettings:
             raise CalibrationError(f"dtype must be 'float32' or 'float64', got {self.dtype!r}")
         if not (self.distance_weight >= 0 and self.chamfer_weight >= 0):
             raise CalibrationError("distance_weight and chamfer_weight must be >= 0")
+        for label, cfg in (("resample", self.resample), ("fracture", self.fracture)):
+            if cfg is not None:
+                _check_config(cfg, label)  # the checks that hold in 2D or 3D; build_problem checks the scene's d
         return self
+
+    def resample_for(self, d: int, ppc: int):
+        """The ResampleConfig the fit uses in dimension d at `ppc` particles per cell (its target ppc
+        defaults to the fit's), validated; None when resampling is off."""
+        if self.resample is None:
+            return None
+        cfg = self.resample
+        if cfg.ppc is None:
+            k = round(ppc ** (1.0 / d))
+            if k ** d != ppc:
+                raise CalibrationError(f"resample: the fit's ppc = {ppc} is not k^{d} for an integer k, so the "
+                                       f"resampler has no target lattice; give resample.ppc (e.g. {2 ** d}) or a "
+                                       f"ppc such as {2 ** d} or {3 ** d}")
+            cfg = dataclasses.replace(cfg, ppc=int(ppc))
+        try:
+            return cfg.validate(d)
+        except ValueError as exc:
+            raise CalibrationError(f"resample: {exc}") from exc
+
+    def fracture_for(self, d: int):
+        """The FractureConfig the fit uses in dimension d, validated; None when fracture is off."""
+        if self.fracture is None:
+            return None
+        try:
+            return self.fracture.validate(d)
+        except ValueError as exc:
+            raise CalibrationError(f"fracture: {exc}") from exc
 
     @property
     def fitted(self) -> tuple:
@@ -217,7 +274,44 @@ class FitSettings:
         d["bounds"] = {n: list(self.bounds_of(n)) for n in FIT_FIELDS}
         d["start_ranges"] = {n: list(self.start_range_of(n)) for n in FIT_FIELDS}
         d["max_iter"] = self.iterations
+        # The feature configs as dicts of their fields (None when off).
+        d["resample"] = None if self.resample is None else dataclasses.asdict(self.resample)
+        d["fracture"] = None if self.fracture is None else dataclasses.asdict(self.fracture)
         return d
+
+
+def _as_config(value, kind, label):
+    """None/False -> None; True -> kind(); dict -> kind(**dict); an instance of kind -> itself."""
+    if value is None or value is False:
+        return None
+    if value is True:
+        return kind()
+    if isinstance(value, kind):
+        return value
+    if isinstance(value, Mapping):
+        fields = {f.name for f in dataclasses.fields(kind)}
+        unknown = sorted(set(value) - fields)
+        if unknown:
+            raise CalibrationError(f"{label}: unknown field(s) {unknown}; expected some of {sorted(fields)}")
+        try:
+            return kind(**dict(value))
+        except (TypeError, ValueError) as exc:
+            raise CalibrationError(f"{label}: {exc}") from exc
+    raise CalibrationError(f"{label} must be None, True/False, a dict of {kind.__name__} fields or a "
+                           f"{kind.__name__}, got {value!r}")
+
+
+def _check_config(cfg, label):
+    """Raise CalibrationError if `cfg` (ResampleConfig or FractureConfig) is invalid in both 2D and 3D
+    (a field out of range whatever the scene); the scene's own dimension is checked by build_problem."""
+    errors = []
+    for d in (2, 3):
+        try:
+            cfg.validate(d)
+            return
+        except (ValueError, TypeError) as exc:
+            errors.append(exc)
+    raise CalibrationError(f"{label}: {errors[0]}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -356,6 +450,8 @@ class _Static:
     cfg: RenderConfig
     distance_weight: float
     chamfer_weight: float
+    resample: ResampleConfig | None = None
+    fracture: FractureConfig | None = None
 
 
 def _params_from(z, static: _Static, base: Params) -> Params:
@@ -366,7 +462,7 @@ def _params_from(z, static: _Static, base: Params) -> Params:
 def _residual(z, static: _Static, base: Params, state0, scene, frame_times, frame_dts, target):
     params = _params_from(z, static, base)
     _, frames, _ = _rollout_jit(state0, params, scene, frame_times, frame_dts, static.grid, static.substeps,
-                                observe_positions, False)
+                                observe_positions, False, static.resample, static.fracture)
     return residuals(frames["x"], frames["active"], target, static.cfg, distance=static.distance_weight,
                      chamfer_weight=static.chamfer_weight)
 
@@ -400,7 +496,7 @@ def _residual_and_jacobian(z, static, base, state0, scene, frame_times, frame_dt
 def _positions(z, static, base, state0, scene, frame_times, frame_dts):
     params = _params_from(z, static, base)
     _, frames, health = _rollout_jit(state0, params, scene, frame_times, frame_dts, static.grid, static.substeps,
-                                     observe_positions, False)
+                                     observe_positions, False, static.resample, static.fracture)
     return frames["x"], frames["active"], health
 
 
@@ -426,7 +522,8 @@ class CalibrationProblem:
         self.dx = sim.dx
         self.static = _Static(transform=transform, grid=sim.grid, substeps=sim.substeps, cfg=cfg,
                               distance_weight=float(settings.distance_weight),
-                              chamfer_weight=float(settings.chamfer_weight))
+                              chamfer_weight=float(settings.chamfer_weight),
+                              resample=sim.resample, fracture=sim.fracture)
         dt = sim.dtype
         self._times = jnp.asarray(sim.plan.frame_times, dt)
         self._dts = jnp.asarray(sim.plan.frame_dts, dt)
@@ -541,7 +638,12 @@ def build_problem(data: Silhouettes, settings: FitSettings | None = None) -> Cal
     if len(used) == 0:
         raise CalibrationError(f"times: no frame after the start of the simulation (t0 = {t0} s); the fit needs "
                                f"at least one frame after the initial shape")
-    sim = Simulator(scene, times[used], ref, dx, ppc, dtype=dtype, state0=state0, cfl=FIT_CFL)
+    # Resampling needs free slots: the Simulator grows state0 to resample.capacity_factor times its
+    # sampled count (inactive slots are neither simulated nor rendered).
+    resample = settings.resample_for(d, ppc)
+    fracture = settings.fracture_for(d)
+    sim = Simulator(scene, times[used], ref, dx, ppc, dtype=dtype, state0=state0, cfl=FIT_CFL,
+                    resample=resample, fracture=fracture)
 
     spacing = particle_spacing(dx, ppc, d)
     level = (choose_pixel_level(data.camera.pixel_size, spacing, data.image_shape) if settings.pixel_level is None
@@ -742,7 +844,9 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
         f"(t = {sim.plan.frame_times[0]:.4g}..{sim.plan.frame_times[-1]:.4g} s), {sim.substeps} substeps/frame "
         f"of dt = {sim.dt:.3g} s, images {problem.cfg.height}x{problem.cfg.width} px at level "
         f"{problem.pixel_level} ({problem.cfg.pixel_size:.3g} m/px); fitting {', '.join(names)} with "
-        f"{settings.optimizer}, {settings.starts} start(s)")
+        f"{settings.optimizer}, {settings.starts} start(s)"
+        + (f"; resampling every {sim.resample.every} substeps ({sim.state0.capacity} slots)" if sim.resample else "")
+        + ("; fracture on" if sim.fracture else ""))
 
     starts, unit = make_starts(tr, settings)
     optimizer = make_optimizer(settings.optimizer)
@@ -848,7 +952,11 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
                         pixel_level=problem.pixel_level, pixel_size_fit=problem.cfg.pixel_size,
                         substeps_per_frame=sim.substeps, dt=sim.dt, fitted=list(names),
                         transforms=dict(zip(names, tr.kinds)), log=None if log is None else os.fspath(log),
-                        dx_check=dx_check)
+                        dx_check=dx_check,
+                        # the configs as the rollouts used them (resample's ppc resolved to the fit's)
+                        resample=None if sim.resample is None else dataclasses.asdict(sim.resample),
+                        fracture=None if sim.fracture is None else dataclasses.asdict(sim.fracture),
+                        capacity=int(sim.state0.capacity))
     T, H, W = data.shape
     data_out = dict(frames=T, height=H, width=W, pixel_size=data.camera.pixel_size,
                     times=[float(t) for t in data.times], frames_used=[int(i) for i in problem.frames],
@@ -995,6 +1103,24 @@ def parse_bounds(text: str | None) -> dict:
     return out
 
 
+def parse_feature(text: str | None, kind, label: str):
+    """The --resample / --fracture option: None (flag absent) -> None; '' (flag alone) -> kind() with its
+    defaults; 'every=10,sparse_fraction=0.4' -> kind(every=10, sparse_fraction=0.4) (integer fields parsed
+    as int, the rest as float, 'none' as None)."""
+    if text is None:
+        return None
+    types = {f.name: str(f.type) for f in dataclasses.fields(kind)}
+    out = {}
+    for k, v in _parse_assignments(text, label).items():
+        if k not in types:
+            raise CalibrationError(f"--{label}: unknown field {k!r}; expected some of {sorted(types)}")
+        try:
+            out[k] = None if v.lower() == "none" else (int(v) if types[k].startswith("int") else float(v))
+        except ValueError as exc:
+            raise CalibrationError(f"--{label}: {k} must be a {types[k].split()[0]}, got {v!r}") from exc
+    return kind(**out)
+
+
 def add_fit_parser(subparsers) -> argparse.ArgumentParser:
     """Add the `fit` subcommand to an argparse subparsers object (runs via args.func(args))."""
     ap = subparsers.add_parser(
@@ -1028,17 +1154,33 @@ def add_fit_parser(subparsers) -> argparse.ArgumentParser:
     ap.add_argument("--resume", action="store_true", help="continue the fit recorded in the fit log")
     ap.add_argument("--no-dx-check", action="store_true",
                     help="skip the discretization check (intervals then hold the statistical part only)")
+    ap.add_argument("--resample", nargs="?", const="", default=None, metavar="FIELD=VALUE,...",
+                    help="particle resampling in every rollout of the fit (default off); alone it uses the "
+                         "ResampleConfig defaults (every=20 substeps, target ppc = the fit's ppc, ...), or "
+                         "override fields, e.g. --resample every=10,sparse_fraction=0.4")
+    ap.add_argument("--fracture", nargs="?", const="", default=None, metavar="FIELD=VALUE,...",
+                    help="the fracture stage in every substep of the fit (default off); alone it uses the "
+                         "FractureConfig defaults (density_ratio 0.2 in 2D, 0.12 in 3D), or e.g. "
+                         "--fracture density_ratio=0.15")
     ap.add_argument("--no-plots", action="store_true", help="skip the pictures")
     ap.set_defaults(func=run_fit)
     return ap
 
 
+def settings_from_args(args) -> FitSettings:
+    """The validated `FitSettings` of parsed `fit` arguments."""
+    return FitSettings(dx=args.dx, ppc=args.ppc, optimizer=args.optimizer, fixed=parse_fixed(args.fix),
+                       bounds=parse_bounds(args.bounds), starts=args.starts, max_iter=args.max_iter,
+                       seed=args.seed, pixel_level=args.pixel_level, dtype=args.dtype,
+                       dx_check=not args.no_dx_check,
+                       resample=parse_feature(getattr(args, "resample", None), ResampleConfig, "resample"),
+                       fracture=parse_feature(getattr(args, "fracture", None), FractureConfig, "fracture"),
+                       ).validate()
+
+
 def run_fit(args) -> int:
     """Run the `fit` subcommand from parsed arguments; returns the exit status."""
-    settings = FitSettings(dx=args.dx, ppc=args.ppc, optimizer=args.optimizer, fixed=parse_fixed(args.fix),
-                           bounds=parse_bounds(args.bounds), starts=args.starts, max_iter=args.max_iter,
-                           seed=args.seed, pixel_level=args.pixel_level, dtype=args.dtype,
-                           dx_check=not args.no_dx_check).validate()
+    settings = settings_from_args(args)
     out = Path(args.out)
     log = Path(args.log) if args.log else default_log_path(out)
     if not args.resume and log.exists():
