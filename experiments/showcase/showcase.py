@@ -40,6 +40,9 @@ RUN_KEYS = {"dx", "ppc", "duration", "frames", "dtype", "note"}
 GAMMA_DECADES = 3.0
 # Contact sheets are drawn at 70% of the frames' pixel size: small enough to commit (~150 kB).
 SHEET_DPI = 70
+# PNGs are stored with a palette of this many colours (a third of the RGBA file size; the frames
+# hold a colour map, grey and white, which 256 colours render without visible banding).
+PNG_COLORS = 256
 
 
 def load_showcase(path):
@@ -147,6 +150,18 @@ def render_frame(show, frame, t, path, lims, gmax):
     fig.tight_layout()
     fig.savefig(path, dpi=70)
     plt.close(fig)
+    _compact_png(path)
+
+
+def _compact_png(path):
+    """Rewrite a PNG with a PNG_COLORS palette (Pillow; left as is without it)."""
+    try:
+        from PIL import Image
+    except ImportError:
+        return
+    with Image.open(path) as im:
+        pal = im.convert("RGB").quantize(colors=PNG_COLORS)
+    pal.save(path, optimize=True)
 
 
 def run(path, gpu=False, out=None):
@@ -200,6 +215,7 @@ def _sheet(files, path, ncols=4, n=8):
     fig.subplots_adjust(0, 0, 1, 1, 0.01, 0.01)
     fig.savefig(path, dpi=SHEET_DPI)
     plt.close(fig)
+    _compact_png(path)
 
 
 def _video(files, path, fps=10):
