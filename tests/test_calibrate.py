@@ -16,8 +16,8 @@ import json
 import numpy as np
 import pytest
 
-from jaxfoam.calibrate import (CalibrationError, FitSettings, calibrate, choose_pixel_level, correlation_area,
-                               default_log_path, parse_bounds, parse_fixed)
+from jaxfoam.calibrate import (FRAME_IOU_MIN, CalibrationError, FitSettings, calibrate, choose_pixel_level,
+                               correlation_area, default_log_path, parse_bounds, parse_fixed, silhouette_iou)
 from jaxfoam.cli import main
 from jaxfoam.io import read_silhouettes
 from jaxfoam.synth import synthesize
@@ -68,6 +68,10 @@ def test_fit_recovers_yield_stress_from_finer_synthetic_data(slump):
     assert fit["settings"]["dx"] == FIT_DX and fit["settings"]["optimizer"] == "lm"
     assert fit["data"]["frames_used"] == [1, 2, 3, 4, 5]  # t = 0 is the initial shape: no information
     assert fit["wall_time"] > 0
+    # Goodness of fit: every used frame's fitted silhouette overlaps the data (IoU >= FRAME_IOU_MIN).
+    assert len(fit["frame_iou"]) == 5 and fit["reproduces_data"] is True
+    assert min(fit["frame_iou"]) > 0.9, fit["frame_iou"]
+    assert not any("does not reproduce" in n for n in fit["notes"])
     for suffix in ("_loss.png", "_overlay.png"):
         assert out.with_name(out.stem + suffix).stat().st_size > 1000
     assert default_log_path(out).exists()
@@ -158,3 +162,20 @@ def test_reported_interval_that_fills_the_bounds_is_not_identifiable():
     ident, notes = judge_reported_intervals({"mu": (50.0, 300.0), "m": (1.4, 1.5)}, params, tr,
                                             {"mu": True, "m": True})
     assert ident == {"mu": False, "m": True} and "wider than 1 times its value 200" in notes[0]
+
+
+def test_silhouette_iou_of_shifted_squares_and_weights():
+    """IoU = |A & B| / |A | B| over pixels of weight > 0: a 10x10 square against the same square shifted
+    by 5 pixels gives 50 / 150 = 1/3; zeroing the weight of the non-overlapping columns of the shifted
+    square gives 50 / 100; two empty frames count as reproduced (1); NaN occupancy counts as empty."""
+    occ = np.zeros((3, 20, 30))
+    mask = np.zeros((3, 20, 30))
+    occ[:, 5:15, 5:15] = 0.9
+    mask[:, 5:15, 10:20] = 1.0
+    w = np.ones_like(occ)
+    w[1, :, 15:20] = 0.0
+    occ[2], mask[2] = np.nan, 0.0
+    np.testing.assert_allclose(silhouette_iou(occ, mask, w), [1.0 / 3.0, 0.5, 1.0], rtol=1e-12)
+    # The soft-occupancy threshold is 1/2: an occupancy of 0.4 is outside.
+    assert silhouette_iou(np.full((1, 4, 4), 0.4), np.ones((1, 4, 4)), np.ones((1, 4, 4)))[0] == 0.0
+    assert 0.5 < FRAME_IOU_MIN < 1.0
