@@ -16,8 +16,8 @@ import json
 import numpy as np
 import pytest
 
-from jaxfoam.calibrate import (FRAME_IOU_MIN, CalibrationError, FitSettings, calibrate, choose_pixel_level,
-                               correlation_area, default_log_path, parse_bounds, parse_fixed, silhouette_iou)
+from jaxfoam.calibrate import (FRAME_BOUNDARY_CELLS, CalibrationError, FitSettings, calibrate, choose_pixel_level,
+                               correlation_area, default_log_path, parse_bounds, parse_fixed, silhouette_mismatch)
 from jaxfoam.cli import main
 from jaxfoam.io import read_silhouettes
 from jaxfoam.synth import synthesize
@@ -68,8 +68,10 @@ def test_fit_recovers_yield_stress_from_finer_synthetic_data(slump):
     assert fit["settings"]["dx"] == FIT_DX and fit["settings"]["optimizer"] == "lm"
     assert fit["data"]["frames_used"] == [1, 2, 3, 4, 5]  # t = 0 is the initial shape: no information
     assert fit["wall_time"] > 0
-    # Goodness of fit: every used frame's fitted silhouette overlaps the data (IoU >= FRAME_IOU_MIN).
-    assert len(fit["frame_iou"]) == 5 and fit["reproduces_data"] is True
+    # Goodness of fit: every used frame's fitted boundary lies within a grid cell of the observed one.
+    assert len(fit["frame_iou"]) == 5 and len(fit["frame_boundary_error"]) == 5
+    assert fit["reproduces_data"] is True
+    assert max(fit["frame_boundary_error"]) < 0.5 * FRAME_BOUNDARY_CELLS * FIT_DX, fit["frame_boundary_error"]
     assert min(fit["frame_iou"]) > 0.9, fit["frame_iou"]
     assert not any("does not reproduce" in n for n in fit["notes"])
     for suffix in ("_loss.png", "_overlay.png"):
@@ -164,10 +166,13 @@ def test_reported_interval_that_fills_the_bounds_is_not_identifiable():
     assert ident == {"mu": False, "m": True} and "wider than 1 times its value 200" in notes[0]
 
 
-def test_silhouette_iou_of_shifted_squares_and_weights():
-    """IoU = |A & B| / |A | B| over pixels of weight > 0: a 10x10 square against the same square shifted
-    by 5 pixels gives 50 / 150 = 1/3; zeroing the weight of the non-overlapping columns of the shifted
-    square gives 50 / 100; two empty frames count as reproduced (1); NaN occupancy counts as empty."""
+def test_silhouette_mismatch_of_shifted_squares_and_weights():
+    """IoU = |A & B| / |A | B| over pixels of weight > 0, and the mean boundary distance = |A ^ B| x pixel
+    area / observed perimeter. A 10x10-pixel square against the same square shifted by 5 pixels: IoU
+    50 / 150 = 1/3 and 100 differing pixels over the square's 36 boundary pixels; zeroing the weight of
+    the columns only the shifted square covers gives IoU 50 / 100; two empty frames count as reproduced
+    (IoU 1, distance 0); NaN occupancy counts as empty; occupancy 0.4 is outside."""
+    px = 0.002
     occ = np.zeros((3, 20, 30))
     mask = np.zeros((3, 20, 30))
     occ[:, 5:15, 5:15] = 0.9
@@ -175,7 +180,20 @@ def test_silhouette_iou_of_shifted_squares_and_weights():
     w = np.ones_like(occ)
     w[1, :, 15:20] = 0.0
     occ[2], mask[2] = np.nan, 0.0
-    np.testing.assert_allclose(silhouette_iou(occ, mask, w), [1.0 / 3.0, 0.5, 1.0], rtol=1e-12)
-    # The soft-occupancy threshold is 1/2: an occupancy of 0.4 is outside.
-    assert silhouette_iou(np.full((1, 4, 4), 0.4), np.ones((1, 4, 4)), np.ones((1, 4, 4)))[0] == 0.0
-    assert 0.5 < FRAME_IOU_MIN < 1.0
+    iou, dist = silhouette_mismatch(occ, mask, w, px)
+    np.testing.assert_allclose(iou, [1.0 / 3.0, 0.5, 1.0], rtol=1e-12)
+    # frame 0: 100 differing pixels, the observed 10x10 square has 36 boundary pixels
+    np.testing.assert_allclose(dist[0], 100 * px ** 2 / (36 * px), rtol=1e-12)
+    # frame 1: the observed part left is 10x5 (26 boundary pixels), 50 differing pixels
+    np.testing.assert_allclose(dist[1], 50 * px ** 2 / (26 * px), rtol=1e-12)
+    assert dist[2] == 0.0
+    # A uniform shift of b pixels of a large shape gives a distance of about b pixels.
+    big_o = np.zeros((1, 200, 200))
+    big_m = np.zeros((1, 200, 200))
+    big_m[0, 50:150, 50:150] = 1.0
+    big_o[0, 50:150, 53:153] = 1.0
+    d = silhouette_mismatch(big_o, big_m, np.ones_like(big_m), px)[1][0]
+    assert abs(d / px - 1.5) < 0.1, d / px  # 600 px differ over a ~400 px perimeter: 3 px on 2 of 4 sides
+    one = np.ones((1, 4, 4))
+    assert silhouette_mismatch(np.full((1, 4, 4), 0.4), one, one, px)[0][0] == 0.0
+    assert FRAME_BOUNDARY_CELLS >= 0.5
