@@ -82,13 +82,13 @@ FTOL = 1e-7
 XTOL = 1e-6
 DEFAULT_STARTS = 3
 # Goodness of fit: per used frame, the mean displacement between the fitted and the observed
-# silhouette boundaries (area of their symmetric difference over the observed perimeter, m). The fit's
-# grid places a boundary to about half a cell, so a frame whose boundaries are on average more than one
-# grid cell apart is a misfit the discretization does not explain: a local minimum, or an event (tear-off,
-# contact) the grid places at another time. Measured against IoU in the recovery study: a hanging-plate
-# fit stuck at mu = 41 Pa (truth 98 Pa) had IoU 0.45-0.50 in 5 of 10 frames, while right drop fits also
-# had IoU ~0.7 after landing, where the foam is a pancake a few cells thick (IoU penalizes thin shapes).
-FRAME_BOUNDARY_CELLS = 1.0
+# silhouette boundaries (area of their symmetric difference over the observed perimeter, m). A silhouette
+# drawn from particles places its boundary to within about half a particle spacing, so frames whose
+# boundaries are on average more than one particle spacing apart (dx / 2 at the default ppc) are a misfit
+# the discretization does not explain: a local minimum, or an event (tear-off, contact) the grid places at
+# another time. IoU is reported too but does not decide: it penalizes thin shapes (right drop fits had
+# IoU ~0.7 once the foam was a pancake a few cells thick).
+FRAME_BOUNDARY_SPACINGS = 1.0
 DEFAULT_LEVEL = 0.95
 # Residual autocorrelation is integrated over lags up to this many kernel supports, per axis.
 CORRELATION_WINDOW_SUPPORTS = 1.0
@@ -356,9 +356,10 @@ class FitResult:
       residual: (n,) residual vector at the optimum (not written to JSON; `plot_overlay` uses it).
       frame_iou: per used frame, the IoU of the fitted silhouette (soft occupancy >= 1/2) with the
         observed mask over weighted pixels.  frame_boundary_error: per used frame, the mean distance
-        between the two silhouettes' boundaries, m (`silhouette_mismatch`). `reproduces_data` is False,
-        and a note says so, when a frame's exceeds FRAME_BOUNDARY_CELLS grid cells: the intervals,
-        which assume a fit that reproduces the data, are then not trustworthy.
+        between the two silhouettes' boundaries, m (`silhouette_mismatch`).  frame_boundary_limit: the
+        largest admitted, m: FRAME_BOUNDARY_SPACINGS particle spacings. `reproduces_data` is False, and
+        a note says so, when a frame exceeds it: the intervals, which assume a fit that reproduces the
+        data, are then not trustworthy.
     """
 
     params: dict
@@ -387,14 +388,13 @@ class FitResult:
     residual: np.ndarray | None = None
     frame_iou: tuple = ()
     frame_boundary_error: tuple = ()
+    frame_boundary_limit: float = math.nan
 
     @property
     def reproduces_data(self) -> bool:
-        """Whether every used frame's fitted silhouette boundary lies within FRAME_BOUNDARY_CELLS grid
-        cells of the observed one on average."""
-        dx = self.settings.get("dx")
-        return (bool(len(self.frame_boundary_error)) and dx is not None
-                and max(self.frame_boundary_error) <= FRAME_BOUNDARY_CELLS * dx)
+        """Whether every used frame's fitted silhouette boundary lies within frame_boundary_limit of the
+        observed one on average."""
+        return bool(len(self.frame_boundary_error)) and max(self.frame_boundary_error) <= self.frame_boundary_limit
 
     def to_dict(self) -> dict:
         """JSON-able dict (infinite interval ends as "inf"/"-inf", undefined values as null)."""
@@ -424,7 +424,7 @@ class FitResult:
             "evaluations": self.evaluations, "settings": self.settings, "data": self.data,
             "wall_time": self.wall_time, "n_effective": self.n_effective,
             "frame_iou": list(self.frame_iou), "frame_boundary_error": list(self.frame_boundary_error),
-            "reproduces_data": self.reproduces_data,
+            "frame_boundary_limit": self.frame_boundary_limit, "reproduces_data": self.reproduces_data,
         })
 
     def write(self, path) -> None:
@@ -452,11 +452,11 @@ class FitResult:
                 for j, b in enumerate(self.fitted) if i < j))
         lines.extend(self.notes)
         if len(self.frame_boundary_error):
-            dx = self.settings.get("dx")
-            lines.append(f"goodness of fit per frame: mean boundary distance max {max(self.frame_boundary_error):.3g} m "
-                         f"({max(self.frame_boundary_error) / dx:.2f} dx), silhouette IoU min {min(self.frame_iou):.3f}: "
-                         f"the data are {'reproduced' if self.reproduces_data else 'NOT reproduced'} "
-                         f"(threshold {FRAME_BOUNDARY_CELLS:g} dx)")
+            worst = max(self.frame_boundary_error)
+            lines.append(f"goodness of fit per frame: mean boundary distance max {worst:.3g} m (limit "
+                         f"{self.frame_boundary_limit:.3g} m = {FRAME_BOUNDARY_SPACINGS:g} particle spacing), silhouette "
+                         f"IoU min {min(self.frame_iou):.3f}: the data are "
+                         f"{'reproduced' if self.reproduces_data else 'NOT reproduced'}")
         lines.append(f"loss {self.loss:.5g} after {self.iterations} iterations ({self.reason}), best of "
                      f"{len(self.runs)} start(s); {self.wall_time:.1f} s wall")
         return "\n".join(lines)
@@ -1040,19 +1040,21 @@ def _with_goodness_of_fit(problem: CalibrationProblem, result: FitResult) -> Fit
     iou, boundary = silhouette_mismatch(fitted_occupancy(problem, result), problem.masks, problem.weights,
                                         problem.cfg.pixel_size)
     notes = list(result.notes)
-    limit = FRAME_BOUNDARY_CELLS * problem.dx
+    ppc = FIT_PPC[problem.scene.dim] if problem.settings.ppc is None else int(problem.settings.ppc)
+    limit = FRAME_BOUNDARY_SPACINGS * particle_spacing(problem.dx, ppc, problem.scene.dim)
     bad = np.nonzero(boundary > limit)[0]
     if len(bad):
         times = np.asarray(problem.data.times)[np.asarray(problem.frames)]
         k = int(np.argmax(boundary))
         notes.append(f"the fitted simulation does not reproduce {len(bad)} of {len(iou)} frames (silhouette boundaries "
-                     f"more than {FRAME_BOUNDARY_CELLS:g} grid cell = {limit:.3g} m apart on average; worst "
+                     f"more than {FRAME_BOUNDARY_SPACINGS:g} particle spacing = {limit:.3g} m apart on average; worst "
                      f"{boundary[k]:.3g} m, IoU {iou[k]:.2f}, at t = {times[k]:.4g} s): the intervals assume a fit that "
                      f"reproduces the data and are not trustworthy here. Likely a local minimum (more --starts, "
                      f"another --optimizer) or an event such as a tear-off or a contact that the dx = "
                      f"{problem.dx:.3g} m grid places differently from the data (finer --dx).")
     return dataclasses.replace(result, frame_iou=tuple(float(v) for v in iou),
-                               frame_boundary_error=tuple(float(v) for v in boundary), notes=tuple(notes))
+                               frame_boundary_error=tuple(float(v) for v in boundary), frame_boundary_limit=limit,
+                               notes=tuple(notes))
 
 
 # ----------------------------------------------------------------------------------------------

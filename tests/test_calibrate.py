@@ -16,7 +16,7 @@ import json
 import numpy as np
 import pytest
 
-from jaxfoam.calibrate import (FRAME_BOUNDARY_CELLS, CalibrationError, FitSettings, calibrate, choose_pixel_level,
+from jaxfoam.calibrate import (FRAME_BOUNDARY_SPACINGS, CalibrationError, FitSettings, calibrate, choose_pixel_level,
                                correlation_area, default_log_path, parse_bounds, parse_fixed, silhouette_mismatch)
 from jaxfoam.cli import main
 from jaxfoam.io import read_silhouettes
@@ -68,10 +68,12 @@ def test_fit_recovers_yield_stress_from_finer_synthetic_data(slump):
     assert fit["settings"]["dx"] == FIT_DX and fit["settings"]["optimizer"] == "lm"
     assert fit["data"]["frames_used"] == [1, 2, 3, 4, 5]  # t = 0 is the initial shape: no information
     assert fit["wall_time"] > 0
-    # Goodness of fit: every used frame's fitted boundary lies within a grid cell of the observed one.
+    # Goodness of fit: every used frame's fitted boundary lies within a particle spacing (dx / 2 at 4 ppc)
+    # of the observed one on average.
     assert len(fit["frame_iou"]) == 5 and len(fit["frame_boundary_error"]) == 5
     assert fit["reproduces_data"] is True
-    assert max(fit["frame_boundary_error"]) < 0.5 * FRAME_BOUNDARY_CELLS * FIT_DX, fit["frame_boundary_error"]
+    assert abs(fit["frame_boundary_limit"] - FRAME_BOUNDARY_SPACINGS * FIT_DX / 2) < 1e-12
+    assert max(fit["frame_boundary_error"]) < 0.5 * fit["frame_boundary_limit"], fit["frame_boundary_error"]
     assert min(fit["frame_iou"]) > 0.9, fit["frame_iou"]
     assert not any("does not reproduce" in n for n in fit["notes"])
     for suffix in ("_loss.png", "_overlay.png"):
@@ -196,4 +198,4 @@ def test_silhouette_mismatch_of_shifted_squares_and_weights():
     assert abs(d / px - 1.5) < 0.1, d / px  # 600 px differ over a ~400 px perimeter: 3 px on 2 of 4 sides
     one = np.ones((1, 4, 4))
     assert silhouette_mismatch(np.full((1, 4, 4), 0.4), one, one, px)[0][0] == 0.0
-    assert FRAME_BOUNDARY_CELLS >= 0.5
+    assert FRAME_BOUNDARY_SPACINGS >= 0.5
