@@ -27,6 +27,7 @@ from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import jaxlib.version
 
 from ._params import FIT_FIELDS, Params
 from ._scene import Plate, Scene
@@ -34,11 +35,19 @@ from ._simulate import Simulator, observe_default
 from ._state import State
 
 MODES = ("fwd", "rev")
-# XLA:CPU codegen option for the differentiated rollout: the older elemental emitters compile these
-# large jvp/transpose programs in about half the time of the default fusion emitters, and run them
-# as fast or faster (measured on the 2D hanging plate: jacfwd compile 30 -> 16 s, reverse 69 -> 39 s,
-# reverse run time -25%). Results agree to round-off. Applied on the CPU backend only.
+# XLA:CPU codegen options for the differentiated rollout (applied on the CPU backend only; results
+# agree to round-off):
+# - the older elemental emitters compile these large jvp/transpose programs in about half the time of
+#   the default fusion emitters, and run them as fast or faster (measured on the 2D hanging plate:
+#   jacfwd compile 30 -> 16 s, reverse 69 -> 39 s, reverse run time -25%);
+# - an empty YNNPACK fusion list (jaxlib 0.10.2 sends reductions to that library): the transposes of
+#   the per-particle broadcasts over the few velocity components and stencil offsets are reductions
+#   over tiny axes, which the library call ran 4x slower than XLA's own loop (a (18669, 2) -> (18669,)
+#   sum: 0.44 vs 0.10 ms); reverse mode on the 2D hanging plate at dx 2.5 mm went from 5.3-5.8x to
+#   4.4-4.6x the forward CPU time (A/B in one process), the forward run unchanged.
 CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+if tuple(jaxlib.version.__version_info__[:3]) >= (0, 10, 2):  # the option exists from this jaxlib on
+    CPU_COMPILER_OPTIONS["xla_cpu_experimental_ynn_fusion_type"] = ""
 PARAM_FIELDS = tuple(f.name for f in dataclasses.fields(Params))
 SCENE_FIELDS = ("gravity", "floor_friction")
 PLATE_FIELDS = tuple(f.name for f in dataclasses.fields(Plate) if not f.metadata.get("static"))
