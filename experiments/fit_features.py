@@ -160,7 +160,7 @@ def report(quick: bool) -> None:
                              "yes" if r["identifiable"][n] else "no"])
         body.append("\n95% intervals (combined, and the Gauss-Newton part alone):\n\n")
         body.append(C.md_table(["variant", "param", "fit", "combined 95%", "statistical 95%", "identifiable"], rows))
-        if "plain" in done:
+        if "plain" in done and len(done) > 1:
             ref = recs[(s, "plain")]
             rows = []
             for v in done:
@@ -176,9 +176,41 @@ def report(quick: bool) -> None:
             body.append(C.md_table(["variant", "mu", "sigma_y", "eta", "m", "mu (hw)", "sigma_y (hw)", "eta (hw)",
                                     "m (hw)", "wall"], rows))
         body.append("\n")
+    body.append(summary(recs, scenes))
     C.write_md(NAME, quick, "Fit features: fitted parameters with and without resampling and fracture",
                "\n".join(body))
     plot(recs, scenes, quick)
+
+
+def _max_rel_diff(a: dict, b: dict) -> float:
+    """Largest relative difference of the fitted parameters and the loss of two fits."""
+    pairs = [(a["params"][n], b["params"][n]) for n in FIT_FIELDS] + [(a["loss"], b["loss"])]
+    return max(abs(x - y) / max(abs(y), 1e-300) for x, y in pairs)
+
+
+def summary(recs: dict, scenes) -> str:
+    """Findings computed from the tables: which variants gave the same fit, and the largest changes."""
+    lines = ["## Summary (computed from the tables above)\n"]
+    for s, *_ in scenes:
+        if (s, "plain") not in recs:
+            continue
+        ref = recs[(s, "plain")]
+        parts = []
+        for v, base in (("fracture", "plain"), ("both", "resample")):
+            if (s, v) in recs and (s, base) in recs:
+                d = _max_rel_diff(recs[(s, v)], recs[(s, base)])
+                parts.append(f"`{v}` against `{base}`: largest relative difference of the fitted parameters and "
+                             f"loss {d:.2g}" + (" (the fracture stage changed nothing)" if d < 1e-9 else ""))
+        other = "resample" if (s, "resample") in recs else "both"
+        if (s, other) in recs:
+            sh = shifts(recs[(s, other)], ref)
+            n_c = max(FIT_FIELDS, key=lambda n: abs(sh[n][1]))
+            n_s = max(FIT_FIELDS, key=lambda n: abs(sh[n][2]))
+            parts.append(f"`{other}` against `plain`: largest change {sh[n_c][1]:+.2f} combined half-widths "
+                         f"({n_c}), {sh[n_s][2]:+.2f} statistical half-widths ({n_s}); wall time "
+                         f"{recs[(s, other)]['wall_time'] / ref['wall_time']:.2f}x")
+        lines.append(f"- {s}: " + "; ".join(parts) + ".")
+    return "\n".join(lines) + "\n"
 
 
 def plot(recs, scenes, quick) -> None:
