@@ -10,7 +10,8 @@ default (4 particles per cell, CFL 0.3, float64, Levenberg-Marquardt, discretiza
 except the grid: STUDY_CELLS = 32 cells across the largest extent, half the fitter's 64, because at 64
 cells a rollout with both features cost 9x the plain one (measured on the drop: 37.7 s against 4.2 s per
 forward rollout, 288 s against 38.7 s per 4-column Jacobian, at load ~7) and the twelve fits would take
-several hours on the shared 2-core machine; at 32 cells they take about one. All four fits of a scene start from the same point, the truth (one
+several hours on the shared 2-core machine; at 32 cells they took 2.2 hours of fit wall time summed
+(about one hour elapsed, 2-4 fits at a time, load average 8-11). All four fits of a scene start from the same point, the truth (one
 start; a start range of +-0.1% around it), with the same modest iteration budget, so a difference between
 them comes from the model, not from the optimizer's path from different starts.
 
