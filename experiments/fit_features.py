@@ -132,8 +132,8 @@ def report(quick: bool) -> None:
             f"{ResampleConfig().capacity_factor:g}x particle slots); `fracture`: `FractureConfig()` defaults "
             f"(weak below a neighbourhood density ratio of 0.2 in 2D); `both`. The derivatives treat the "
             f"resampling and fracture decisions as fixed (see `FitSettings`). Wall times were measured with other "
-            f"jobs on the shared 2-core machine (load average about 6-8), so they compare only roughly; "
-            f"`wall s` includes compilation.\n"]
+            f"jobs on the shared 2-core machine (load average 8-11, 2-4 of these fits at a time), so they compare "
+            f"only roughly; `wall s` includes compilation.\n"]
     for s, dur, frames, dcells in scenes:
         body.append(f"## {s}\n\nData: {dcells} cells across the largest extent, {dur} s, {frames} frames.\n")
         done = [v for v in VARIANTS if (s, v) in recs]
