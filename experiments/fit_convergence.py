@@ -13,8 +13,8 @@ Per fit the table gives the fitted (mu Pa, sigma_y Pa, eta Pa s^m, m), the combi
 loss, the wall time, and the change of each parameter from the reference fit (64 cells, 4 per cell)
 in units of the reference's interval half-width (combined; and statistical alone).
 
-Resampling and fracture: `calibrate` builds its simulator without them (FitSettings has no switch),
-so fits with them on are not run; the table says so.
+Resampling and fracture (FitSettings.resample / .fracture) are measured by experiments/fit_features.py,
+not here.
 
 Every fit is saved as it finishes (out/fit_convergence/<case>.json) and a re-run skips finished fits.
 Usage: python -m experiments fit_convergence [--quick] [--report]
@@ -195,9 +195,8 @@ def report(quick: bool) -> None:
             body.append(C.md_table(["cells / ppc", "mu", "sigma_y", "eta", "m", "mu (hw)", "sigma_y (hw)",
                                     "eta (hw)", "m (hw)"], rows))
         body.append("\n")
-    body.append("## Resampling and fracture\n\nNot run: `jaxfoam.calibrate` builds its simulator without "
-                "resampling or fracture (FitSettings has no switch for either), so no fit can turn them on "
-                "without changing the fitter.\n")
+    body.append("## Resampling and fracture\n\nNot run here: fits with `FitSettings(resample=..., fracture=...)` "
+                "are compared with plain fits by `experiments/fit_features.py` (results/fit_features.md).\n")
     C.write_md(NAME, quick, "Fit convergence: fitted parameters against the fit's grid and ppc", "\n".join(body))
     plot(recs, scenes, fits, quick)
 
