@@ -43,8 +43,9 @@ MODES = ("fwd", "rev")
 # - an empty YNNPACK fusion list (jaxlib 0.10.2 sends reductions to that library): the transposes of
 #   the per-particle broadcasts over the few velocity components and stencil offsets are reductions
 #   over tiny axes, which the library call ran 4x slower than XLA's own loop (a (18669, 2) -> (18669,)
-#   sum: 0.44 vs 0.10 ms); reverse mode on the 2D hanging plate at dx 2.5 mm went from 5.3-5.8x to
-#   4.4-4.6x the forward CPU time (A/B in one process), the forward run unchanged.
+#   sum: 0.44 vs 0.10 ms). Reverse mode on the 2D hanging plate at dx 2.5 mm, 2 frames: 5.3-5.8x ->
+#   4.4-4.6x the forward CPU time in four A/B runs in one process; over 10 frames the A/B gains were
+#   smaller and mixed (CPU time -4% and +7%, wall -4% and -8%); the forward run unchanged.
 CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 if tuple(jaxlib.version.__version_info__[:3]) >= (0, 10, 2):  # the option exists from this jaxlib on
     CPU_COMPILER_OPTIONS["xla_cpu_experimental_ynn_fusion_type"] = ""
