@@ -272,25 +272,43 @@ def _g2p(state: State, grid_v, grid: Grid):
     """`g2p` with C returned as components (rows of (N,) arrays), 1/s."""
     x, d = state.x, state.dim
     base, fx, w = _stencil(x, grid)
-    offs = _offsets(d)
-    idx = jnp.concatenate([_flat_index(base, off, grid) for off in offs])
-    gathered = grid_v.at[idx].get(mode="promise_in_bounds").reshape(len(offs), x.shape[0], d)
-    W = _stencil_weights(w, offs)
-    offa = jnp.asarray(np.asarray(offs), x.dtype)
+    strides = np.cumprod((grid.shape[1:] + (1,))[::-1])[::-1]
+    idx0 = _flat_index(base, (0,) * d, grid)
+    rest = list(itertools.product(range(3), repeat=d - 1))
     scale = 4.0 / grid.dx ** 2
+    # Weights and position offsets along the other axes, per remaining offset (static).
+    w_rest = []
+    for r in rest:
+        wr = None
+        for k in range(1, d):
+            wr = w[r[k - 1]][:, k] if wr is None else wr * w[r[k - 1]][:, k]
+        w_rest.append(wr)
+    dp_rest = [[(r[k - 1] - fx[:, k]) * (grid.dx * scale) for k in range(1, d)] for r in rest]
 
-    # The sum over offsets runs as a scan: its carry is materialized once. As an unrolled sum XLA:CPU
-    # fused it into every consumer in the constitutive update and recomputed it there (3D: 5x slower).
+    # The sum over offsets runs as a scan over the first axis's 3 offsets (the others unrolled in
+    # the body), gathering inside the body: the grid velocities are then materialized once as a loop
+    # input (fused into one gather, the grid update was recomputed per gathered value), and the
+    # carry is materialized once (as an unrolled sum XLA:CPU fused it into every consumer in the
+    # constitutive update and recomputed it there).
     def accumulate(carry, xs):
         v, C = carry
-        g, wo, off = xs
-        vi = wo[:, None] * g
-        dp = [(off[k] - fx[:, k]) * (grid.dx * scale) for k in range(d)]
-        return (v + vi, tuple(tuple(C[i][j] + vi[:, i] * dp[j] for j in range(d)) for i in range(d))), None
+        a, wa = xs
+        dp0 = (a.astype(x.dtype) - fx[:, 0]) * (grid.dx * scale)
+        ia = idx0 + a * int(strides[0])
+        for r, wr, dpr in zip(rest, w_rest, dp_rest):
+            off = sum(r[k - 1] * int(strides[k]) for k in range(1, d))
+            g = grid_v.at[ia + off].get(mode="promise_in_bounds")
+            wo = wa if wr is None else wa * wr
+            vi = wo[:, None] * g
+            dp = [dp0] + dpr
+            v = v + vi
+            C = tuple(tuple(C[i][j] + vi[:, i] * dp[j] for j in range(d)) for i in range(d))
+        return (v, C), None
 
     zc = jnp.zeros_like(x[:, 0])
     zero = (jnp.zeros_like(x), tuple(tuple(zc for _ in range(d)) for _ in range(d)))
-    (v, C), _ = jax.lax.scan(accumulate, zero, (gathered, W, offa))
+    wa = jnp.stack([w[a][:, 0] for a in range(3)])
+    (v, C), _ = jax.lax.scan(accumulate, zero, (jnp.arange(3, dtype=jnp.int32), wa))
     return v, C
 
 
