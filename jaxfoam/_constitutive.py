@@ -10,6 +10,7 @@ import math
 
 import jax
 import jax.numpy as jnp
+from jax.ad_checkpoint import checkpoint_name
 import numpy as np
 
 from . import _tensor as T
@@ -168,7 +169,9 @@ def _hb_rate_jvp(primals, tangents):
     """
     a, b, eta, m = primals
     da, db, deta, dm = tangents
-    gamma = hb_rate(a, b, eta, m)
+    # Named: reverse mode's per-substep rematerialization keeps the rate (jaxfoam._simulate.REMAT_SAVED)
+    # instead of re-running the solve before the backward pass.
+    gamma = checkpoint_name(hb_rate(a, b, eta, m), "hb_gamma")
     # gamma > 0 too: just past yield with m < 1, gamma = (b/eta)^(1/m) can underflow to 0 (float32,
     # m ~ 0.1), where P ln(gamma) would be 0 * -inf = NaN; the derivative of an underflowed 0 is 0.
     yielding = (b > 0) & (gamma > 0)

@@ -12,6 +12,7 @@ import math
 
 import jax
 import jax.numpy as jnp
+from jax.ad_checkpoint import checkpoint_name
 import numpy as np
 
 from . import _tensor as T
@@ -371,6 +372,8 @@ def _substep(state: State, params: Params, scene: Scene, grid: Grid, dt, fractur
         grid_v = grid_update(grid_mv, grid_m, scene, grid, state.t, dt, colliders)
     with jax.named_scope("g2p"):
         v, C = _g2p(state, grid_v, grid)
+        # Named: kept by reverse mode's per-substep rematerialization (jaxfoam._simulate.REMAT_SAVED).
+        v, C = checkpoint_name((v, C), "g2p")
     with jax.named_scope("constitutive"):
         new = _constitutive(state, v, C, params, grid, dt)
     if fracture is not None:

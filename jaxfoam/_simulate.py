@@ -22,12 +22,15 @@ CFL = 0.3
 SPEED_SAFETY = 1.5
 
 STATE_FIELDS = ("x", "v", "C", "F", "bbar_e")
-# Reverse mode: substeps per inner rematerialization block of a frame. A frame's backward pass then
-# holds the block-boundary states and one block's residuals (~2.5 kB per particle-substep in 2D
-# float64) instead of the whole frame's: measured on the 2D hanging plate at 72 substeps per frame,
-# the gradient's working memory fell from 762 MB to under 100 MB (experiments/bench_grad.md); blocks
-# of 1, 2, 4 and 8 substeps ran equally fast. The forward computation is unchanged.
-CHECKPOINT_BLOCK = 4
+# Reverse mode: every substep is a `jax.checkpoint` whose backward pass recomputes the substep from
+# its input state, except for these named values, which the frame's recomputation stores per substep:
+# the plastic rate of the return map ("hb_gamma", jaxfoam._constitutive) and the g2p velocity and
+# velocity gradient ("g2p", jaxfoam._mpm), so the solve and the gather are not redone there. The
+# remaining recomputation is elementwise work that XLA fuses into the transpose's kernels. Measured
+# on the 2D hanging plate (same-process A/B, CPU time / forward): dx 5 mm 5.9x -> 4.7x, dx 2.5 mm
+# 5.9-6.3x -> 4.9-5.3x, against the former blocks of 4 substeps whose ~230 stored residual arrays
+# per substep were written to and read back from memory (docs/gradients.md).
+REMAT_SAVED = ("hb_gamma", "g2p")
 # Reorder the particles by grid cell at the start of every frame (and restore the order at its end,
 # so particle i stays particle i in every output): scatter and gather then touch neighbouring memory;
 # +17% (2D) / +26% (3D) particle-steps/s on randomly ordered particles, for one argsort per frame.
@@ -118,16 +121,9 @@ def _rollout_impl(state0, params, scene, frame_times, frame_dts, grid, substeps,
             state, perm = sort_by_cell(state, grid)
 
         xs = None if resample is None else jnp.arange(substeps)
-        nb = substeps // CHECKPOINT_BLOCK if checkpoint else 0
-        if nb > 1:
-            def block(s, xb):
-                return jax.lax.scan(sub, s, xb, length=CHECKPOINT_BLOCK)[0], None
-
-            head = None if xs is None else xs[:nb * CHECKPOINT_BLOCK].reshape(nb, CHECKPOINT_BLOCK)
-            state, _ = jax.lax.scan(jax.checkpoint(block), state, head, length=nb)
-            rest = substeps - nb * CHECKPOINT_BLOCK
-            if rest:
-                state, _ = jax.lax.scan(sub, state, None if xs is None else xs[nb * CHECKPOINT_BLOCK:], length=rest)
+        if checkpoint:
+            policy = jax.checkpoint_policies.save_only_these_names(*REMAT_SAVED)
+            state, _ = jax.lax.scan(jax.checkpoint(sub, policy=policy), state, xs, length=substeps)
         else:
             state, _ = jax.lax.scan(sub, state, xs, length=substeps)
         if sort:
@@ -136,9 +132,10 @@ def _rollout_impl(state0, params, scene, frame_times, frame_dts, grid, substeps,
         return state, (observe(state, params), _health(state))
 
     if checkpoint:
-        # Reverse mode stores one state per frame and recomputes the frame's substeps (themselves in
-        # rematerialized blocks of CHECKPOINT_BLOCK): peak memory grows with the number of frames and
-        # the substeps per frame / CHECKPOINT_BLOCK, not with the number of substeps.
+        # Reverse mode stores one state per frame and recomputes the frame, storing each substep's
+        # input state and REMAT_SAVED values; each substep is then recomputed (elementwise parts only)
+        # inside its backward pass: peak memory grows with the number of frames and the substeps per
+        # frame, not with the total number of substeps.
         frame = jax.checkpoint(frame)
     xs = (frame_times, frame_dts) if resample is None else (frame_times, frame_dts, jnp.arange(len(frame_times)))
     final, (frames, health) = jax.lax.scan(frame, state0, xs)
