@@ -200,13 +200,6 @@ def p2g(state: State, params: Params, grid: Grid, dt) -> tuple[jax.Array, jax.Ar
     return grid_mv[:, :d], grid_mv[:, d]
 
 
-def _safe_norm_vec(v):
-    # Explicit component sum: XLA:CPU runs a reduction over an axis of length d as a slow library call.
-    sq = sum(v[..., k] * v[..., k] for k in range(v.shape[-1]))
-    pos = sq > 0
-    return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)
-
-
 def apply_colliders(v, node_x, scene: Scene, t, colliders=()) -> jax.Array:
     """Boundary conditions on grid velocities v (G, d) m/s at nodes node_x (G, d) m, time t s.
 
@@ -242,11 +235,21 @@ def apply_colliders(v, node_x, scene: Scene, t, colliders=()) -> jax.Array:
         else:
             vn = v[:, 1]
             approaching = below & (vn < 0)
-            vt = v.at[:, 1].set(0.0)
-            speed = _safe_norm_vec(vt)
-            new_speed = jnp.maximum(speed + scene.floor_friction * vn, 0.0)
-            scale = jnp.where(speed > 0, new_speed / jnp.where(speed > 0, speed, 1.0), 0.0)
-            v = jnp.where(approaching[:, None], vt * scale[:, None], v)
+            tang = [v[:, k] for k in range(d) if k != 1]
+            if d == 2:
+                # One tangential component: speed |v_x|, new v_x = sign(v_x) max(|v_x| + mu_f v_n, 0)
+                # (no square root or division: the 3D form cost two extra grid kernels per step).
+                new_t = [jnp.sign(tang[0]) * jnp.maximum(jnp.abs(tang[0]) + scene.floor_friction * vn, 0.0)]
+            else:
+                sq = sum(c * c for c in tang)
+                pos = sq > 0
+                speed = jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)
+                new_speed = jnp.maximum(speed + scene.floor_friction * vn, 0.0)
+                scale = jnp.where(pos, new_speed / jnp.where(pos, speed, 1.0), 0.0)
+                new_t = [c * scale for c in tang]
+            zero = jnp.zeros_like(vn)
+            friction = jnp.stack(new_t[:1] + [zero] + new_t[1:], axis=1)
+            v = jnp.where(approaching[:, None], friction, v)
     lo = jnp.asarray(scene.domain_min, v.dtype)
     hi = jnp.asarray(scene.domain_max, v.dtype)
     v = jnp.where(node_x <= lo[None, :], jnp.maximum(v, 0.0), v)
