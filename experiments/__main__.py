@@ -15,7 +15,7 @@ import time
 
 # Order: validation first, then stability, then accuracy-vs-speed (the slowest).
 EXPERIMENTS = ("rheometer", "poiseuille", "elastic_wave", "slump", "stability", "kappa_study", "grad_horizon",
-               "fit_convergence", "fit_features", "pareto")
+               "fit_convergence", "fit_features", "plane_strain", "pareto")
 
 
 def main(argv=None) -> int:

@@ -18,9 +18,10 @@ points change the model too (bulk modulus 1000 and 10000 Pa instead of the scene
 is how much the answer depends on compressibility; the volume error max over frames of mean |J - 1| is
 listed for every run.
 
-Usage: python -m experiments pareto [--quick] [--scene hanging_plate|drop] [--no-3d]. Writes
-experiments/results/pareto[_quick].png/.md; with --scene or --no-3d (a partial study, e.g. a re-run after a
-scene file changed) it writes pareto_<scene...>[_2d][_quick].png/.md instead, never over the full results.
+Usage: python -m experiments pareto [--quick] [--scene hanging_plate|drop] [--no-3d | --only-3d]. Writes
+experiments/results/pareto[_quick].png/.md; with --scene, --no-3d or --only-3d (a partial study, e.g. a re-run
+after a scene file changed) it writes pareto_<scene...>[_2d|_3d][_quick].png/.md instead, never over the full
+results.
 """
 from __future__ import annotations
 
@@ -130,7 +131,7 @@ def variants(quick: bool):
             ("3D slab, 32 cells", dict(dim=3, cells=32))]
 
 
-def study(name: str, quick: bool, no_3d: bool = False):
+def study(name: str, quick: bool, no_3d: bool = False, only_3d: bool = False):
     ref_cells, ref_cfl = (48, 0.15) if quick else (REF_CELLS, REF_CFL)
     duration = DURATION[name] * (0.5 if quick else 1.0)
     ref = simulate(name, ref_cells, None, ref_cfl, "float64", 2, duration)
@@ -142,7 +143,7 @@ def study(name: str, quick: bool, no_3d: bool = False):
           f"{ref['seconds']:.0f} s", flush=True)
     rows = []
     for label, knobs in variants(quick):
-        if no_3d and knobs.get("dim", 2) == 3:
+        if (no_3d and knobs.get("dim", 2) == 3) or (only_3d and knobs.get("dim", 2) != 3):
             continue
         cfg = dict(BASE, **knobs)
         run = simulate(name, cfg["cells"], cfg["ppc"], cfg["cfl"], cfg["dtype"], cfg["dim"], duration, cfg["kappa"])
@@ -177,11 +178,14 @@ def main(argv=None):
     parser.add_argument("--quick", action="store_true", help="reduced version (minutes on 2 cores)")
     parser.add_argument("--scene", action="append", choices=tuple(DURATION), help="only this scene (repeatable)")
     parser.add_argument("--no-3d", action="store_true", help="leave out the 3D point")
+    parser.add_argument("--only-3d", action="store_true", help="only the reference and the 3D point")
     args = parser.parse_args(argv)
+    if args.no_3d and args.only_3d:
+        parser.error("--no-3d and --only-3d exclude each other")
     scenes = tuple(args.scene) if args.scene else tuple(DURATION)
-    name_out = NAME if (scenes == tuple(DURATION) and not args.no_3d) else \
-        "_".join([NAME, *scenes] + (["2d"] if args.no_3d else []))
-    results = {name: study(name, args.quick, args.no_3d) for name in scenes}
+    name_out = NAME if (scenes == tuple(DURATION) and not args.no_3d and not args.only_3d) else \
+        "_".join([NAME, *scenes] + (["2d"] if args.no_3d else []) + (["3d"] if args.only_3d else []))
+    results = {name: study(name, args.quick, args.no_3d, args.only_3d) for name in scenes}
 
     import matplotlib
     matplotlib.use("Agg")
@@ -221,7 +225,8 @@ def main(argv=None):
              for r in res["rows"]]) + "\n")
     path = C.write_md(name_out, args.quick, "Accuracy against speed", "".join(parts))
     if name_out != NAME:  # name the command that regenerates a partial study, not its output name
-        flags = "".join(f" --scene {n}" for n in scenes) + (" --no-3d" if args.no_3d else "")
+        flags = "".join(f" --scene {n}" for n in scenes) + (" --no-3d" if args.no_3d else "") + \
+            (" --only-3d" if args.only_3d else "")
         text = path.read_text().replace(f"python -m experiments {name_out}", f"python -m experiments {NAME}{flags}", 1)
         path.write_text(text)
 
