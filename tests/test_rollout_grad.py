@@ -141,9 +141,9 @@ def test_long_rollout_gradient_through_checkpoints():
     forward mode (jacfwd, no tape) to 1e-8 relative, for the material parameters and the plate motion.
     The plain-scan tape of this rollout would hold every substep's residuals (a few kB per
     particle-substep in 2D float64, about 1 GB here; experiments/bench_grad.py measures it); with a
-    checkpoint per frame and rematerialized blocks of CHECKPOINT_BLOCK substeps inside each frame,
-    only the 40 frame states, one frame's 12 block-boundary states and a few substeps' residuals are
-    alive at once."""
+    checkpoint per frame and a rematerialized checkpoint per substep inside it (saving only the
+    named values of REMAT_SAVED), only the 40 frame states, one frame's 50 substep states and one
+    substep's residuals are alive at once."""
     long_sim = _sim(40)
     assert long_sim.total_substeps == 2000
     r = jf.observable_jacobian(long_sim, PARAMS, mean_height, WRT, mode="rev", checkpoint=True)
