@@ -10,7 +10,7 @@
 2. Return map. The scalar HB equation h(gamma) = eta gamma^m + a gamma - b = 0 (a = 2 mubar dt,
    b = s_pre - sqrt(2/3) sigma_y) over m in [0.1, 3], eta in {0} U [1e-4, 1e4] Pa s^m and extreme strains
    (b / mu from 1e-10 to 1e4, dt from 1e-7 to 1e-2 s), solved by
-     - the default solver (`jaxfoam.hb_rate`: Newton in log-rate space from the upper bracket),
+     - the default solver (`jaxfoam.hb_rate`: Halley steps in log-rate space from the upper bracket),
      - plain bisection on eq. 14 in s, eta^(1/m) (s - s_pre) + a (s - s_Y)^(1/m) = 0 on [s_Y, s_pre]
        (BISECTION_ITERS halvings), gamma = (s_pre - s)/a,
      - plain Newton on h(gamma) from gamma0 = b/a (NEWTON_ITERS steps, no safeguard),
@@ -187,7 +187,7 @@ def solver_map(ms, etas, strains, dts):
     out = {}
     with C.Timer() as t_default:
         g_default = jax.block_until_ready(jax.jit(jaxfoam.hb_rate)(a, b, eta, m))
-    out["default (Newton in ln gamma)"] = failed(g_default)
+    out["default (Halley in ln gamma)"] = failed(g_default)
     with C.Timer() as t_bis:
         g_bis = jax.block_until_ready(jax.jit(bisection_eq14)(a, b, eta, m))
     out[f"bisection on eq. 14 ({BISECTION_ITERS} halvings)"] = failed(g_bis)
