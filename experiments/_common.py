@@ -53,10 +53,12 @@ def md_table(header: list[str], rows: list[list]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_md(name: str, quick: bool, title: str, body: str) -> Path:
+def write_md(name: str, quick: bool, title: str, body: str, command: str | None = None) -> Path:
+    """Write results/<name>[_quick].md. command: the experiment and flags that regenerate it, when
+    they differ from `name` (a partial study written under its own name)."""
     path = out_path(name, "md", quick)
     mode = "quick" if quick else "full"
-    path.write_text(f"# {title}\n\n_{mode} run; regenerate with `python -m experiments {name}"
+    path.write_text(f"# {title}\n\n_{mode} run; regenerate with `python -m experiments {command or name}"
                     f"{' --quick' if quick else ''}`. {machine_line()}_\n\n{body}")
     print(f"wrote {path}")
     return path

@@ -223,12 +223,11 @@ def main(argv=None):
             [[r["label"], r["particles"], r["steps"], r["seconds"], r["sil"], r["stress"], r["volume_error"],
               ("yes" if r["label"] in front_s else "no") + " / " + ("yes" if r["label"] in front_t else "no")]
              for r in res["rows"]]) + "\n")
-    path = C.write_md(name_out, args.quick, "Accuracy against speed", "".join(parts))
-    if name_out != NAME:  # name the command that regenerates a partial study, not its output name
-        flags = "".join(f" --scene {n}" for n in scenes) + (" --no-3d" if args.no_3d else "") + \
-            (" --only-3d" if args.only_3d else "")
-        text = path.read_text().replace(f"python -m experiments {name_out}", f"python -m experiments {NAME}{flags}", 1)
-        path.write_text(text)
+    flags = "".join(f" --scene {n}" for n in scenes) + (" --no-3d" if args.no_3d else "") + \
+        (" --only-3d" if args.only_3d else "")
+    # a partial study names the command that regenerates it, not its output name
+    C.write_md(name_out, args.quick, "Accuracy against speed", "".join(parts),
+               command=None if name_out == NAME else NAME + flags)
 
 
 if __name__ == "__main__":

@@ -236,11 +236,9 @@ def main(argv=None):
             [[r["label"], "-" if r["depth"] is None else r["depth"], r["particles"], r["substeps"], r["seconds"],
               r["vs_slab"], "-" if r["mid_vs_slab"] is None else r["mid_vs_slab"], r["vs_2d"]]
              for r in res["rows"]]) + "\n")
-    path = C.write_md(name_out, args.quick, "2D plane strain against 3D blocks of finite depth", "".join(parts))
-    if name_out != NAME:
-        flags = "".join(f" --scene {n}" for n in scenes)
-        text = path.read_text().replace(f"python -m experiments {name_out}", f"python -m experiments {NAME}{flags}", 1)
-        path.write_text(text)
+    flags = "".join(f" --scene {n}" for n in scenes)
+    C.write_md(name_out, args.quick, "2D plane strain against 3D blocks of finite depth", "".join(parts),
+               command=None if name_out == NAME else NAME + flags)
 
 
 if __name__ == "__main__":
