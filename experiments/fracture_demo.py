@@ -1,22 +1,24 @@
-"""Fracture demo: a foam thread pulled apart between two plates, at three resolutions, with and
-without the fracture stage (`jaxfoam.fracture.FractureConfig`).
+"""Fracture demo: a foam strip pulled apart between two plates, at three resolutions, plain MPM against
+the fracture stage with a critical neck thickness (`FractureConfig(neck_thickness=H_C)`).
 
 A strip of foam (1 cm wide, 2.1 cm long, 2D plane strain, gravity off) is held by a still bottom
-plate and a top plate that rises at a constant speed. Measured for each run:
-- pinch-off extension: how far the top plate had risen when the material attached to it stopped
-  being connected to the material on the bottom plate (connectivity on a raster of dx/2 pixels,
-  a pixel filled within 0.75 dx of a point: pieces closer than 1.5 dx count as connected);
-- the force-based extension: when the plate's pull on the foam (the grid momentum the plate
-  imposes, `collider_force`) falls for good below 5% of its peak;
-- weak points at pinch-off (fracture runs).
-Three cases: a yield-stress foam (sigma_y 30 Pa, m 0.5) and a viscous, nearly Bingham one
-(sigma_y 5 Pa, eta 20 Pa s, m 1), both sampled with 4 points per cell, and the viscous one sampled
-with 9 points per cell, the one setting of the survey below where plain MPM draws a long thread a few
-points wide that keeps pulling. A survey of other settings (stiffer, faster, thinner, more
-compressible or less) looks for the regime of ever-thinning particle chains, at the two coarsest
-resolutions. Writes experiments/results/fracture_demo[_quick].png/.md.
-Run: `python experiments/fracture_demo.py [--quick]` (quick: the yield-stress foam at the two
-coarsest resolutions and one survey setting at the coarsest).
+plate and a top plate that rises at 0.1 m/s. Two materials: a yield-stress foam (sigma_y 30 Pa,
+m 0.5) and a viscous, nearly Bingham one (sigma_y 5 Pa, eta 20 Pa s, m 1). Each runs at dx 2.5,
+1.25 and 0.625 mm, plain and with fracture, with particle resampling (`jaxfoam.resample`, every
+RESAMPLE_EVERY substeps: the paper's setting, which keeps stretched material sampled) and without.
+Measured for each run (frames every 1 mm of plate travel):
+- load pinch-off: the plate travel at which the pull on the top plate (`collider_force`) first falls
+  below FORCE_DROP of its peak: the thread stops carrying load;
+- geometric pinch-off: travel after which the material on the two plates stays disconnected
+  (raster of dx/2 pixels, a pixel filled within 0.75 dx of a point);
+- load-path pinch-off: the same connectivity through the points that still carry elastic strain
+  (the points the fracture stage releases excluded; plain runs: the geometric one);
+- the neck thickness (`neck_thickness` with h_c = H_C, the thinnest point between the plates) over
+  the run, to compare the necking itself across resolutions.
+A bulk-flow check runs a 2D slump (experiments/slump.py, tau' = 0.15) plain and with fracture
+(h_c = 3 dx) and counts the points the criterion marks. Writes experiments/results/fracture_demo[_quick].png/.md.
+Run: `python -m experiments fracture_demo [--quick]` (quick: the viscous strip without resampling at
+the two coarsest resolutions, plain and with fracture).
 """
 from __future__ import annotations
 
@@ -31,7 +33,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import jaxfoam  # noqa: E402
 from experiments import _common as C  # noqa: E402
-from jaxfoam.fracture import FractureConfig, collider_force, density_ratio  # noqa: E402
+from jaxfoam.fracture import FractureConfig, collider_force, neck_thickness  # noqa: E402
+from jaxfoam.resample import ResampleConfig  # noqa: E402
 
 NAME = "fracture_demo"
 FOAM = jaxfoam.Params(mu=300.0, kappa=3000.0, sigma_y=30.0, eta=3.0, m=0.5, rho=100.0)
@@ -39,59 +42,43 @@ VISCOUS = jaxfoam.Params(mu=300.0, kappa=3000.0, sigma_y=5.0, eta=20.0, m=1.0, r
 WIDTH = 0.01          # strip width, m
 SPEED = 0.1           # top plate speed, m/s
 DURATION = 0.5        # s
-FRAMES = 50
+FRAMES = 50           # one frame per mm of plate travel
 DXS = (0.0025, 0.00125, 0.000625)   # strip 4, 8, 16 cells wide
+# Critical neck thickness, m: 40% of the strip's width; 6.4 and 3.2 cells on the two finer grids (the
+# thinnest neck they represent with several points across), 1.6 cells on the coarsest, which is
+# therefore not expected to agree. A real foam's h_c (a few bubbles, ~0.1-0.3 mm) is below all three.
+H_C = 0.004
+# Resampling pass every this many substeps: the plate moves 0.6 mm (dx 2.5 mm) to 0.16 mm (dx 0.625 mm)
+# in between, well under a cell.
+RESAMPLE_EVERY = 50
 COVER = 0.75          # connectivity: pixels filled within this many dx of a point
-FORCE_DROP = 0.05     # force-based pinch-off: the pull stays below this share of its peak
+FORCE_DROP = 0.1      # load pinch-off: the pull falls below this share of its peak
 Y_TOP = 0.035         # initial centre of the top plate, m
-# A wider weak-point threshold for the 9-points-per-cell thread: a thread of width w < dx has a
-# density ratio of about 0.75 w / dx (0.75: the quadratic kernel's peak weight), 0.25 to 0.4 for a
-# thread 1 to 2 points across at 9 per cell, while the default 0.2 is set between a box corner
-# (0.275) and a single file at 4 per cell (0.19).
-WIDE_RATIO = 0.35
+SLUMP_TAU = 0.15      # bulk-flow check: dimensionless yield stress of the slump
+SLUMP_RES = 16        # bulk-flow check: column height / dx
+SLUMP_HC = 3          # bulk-flow check: h_c in cells (the smallest h_c the docstring of FractureConfig advises)
 
 
 @dataclasses.dataclass(frozen=True)
 class Case:
     """One pulled-strip setting: material, plate speed (m/s), duration (s), strip width (m), points per
-    cell, gravity (m/s^2, vertical) and the fracture stage's weak-point threshold (None: default)."""
+    cell and sampling seed."""
 
     params: jaxfoam.Params
     speed: float = SPEED
     duration: float = DURATION
     width: float = WIDTH
     ppc: int = 4
-    gravity: float = 0.0
-    ratio: float | None = None
     seed: int = 0
 
 
-CASES = {
-    "yield-stress foam": Case(FOAM),
-    "viscous (Bingham-like)": Case(VISCOUS),
-    "viscous, 9 points per cell": Case(VISCOUS, ppc=9),
-    f"viscous, 9 per cell, threshold {WIDE_RATIO}": Case(VISCOUS, ppc=9, ratio=WIDE_RATIO),
-}
-# The search for plain MPM's numerical strings: each setting at the two coarsest dx, with and
-# without fracture (default threshold).
-SURVEY = {
-    "foam, sigma_y 300 Pa (elastic)": Case(FOAM.replace(sigma_y=300.0)),
-    "foam, pull 0.5 m/s": Case(FOAM, speed=0.5, duration=0.1),
-    "foam, strip 5 mm": Case(FOAM, width=0.005),
-    "foam, 9 per cell": Case(FOAM, ppc=9),
-    "foam, kappa 30 kPa": Case(FOAM.replace(kappa=30000.0)),
-    "foam, gravity 9.81": Case(FOAM, gravity=-9.81),
-    "viscous, m 0.5": Case(VISCOUS.replace(m=0.5)),
-    "viscous, pull 0.5 m/s": Case(VISCOUS, speed=0.5, duration=0.1),
-    "viscous, kappa 30 kPa": Case(VISCOUS.replace(kappa=30000.0)),
-    "viscous, 9 per cell, sampling seed 1": Case(VISCOUS, ppc=9, seed=1),
-}
+CASES = {"yield-stress foam": Case(FOAM), "viscous (Bingham-like)": Case(VISCOUS)}
 
 
 def scene(case: Case):
     s, dur = case.speed, case.duration
     return jaxfoam.load_scene(dict(
-        kind="squeeze", dim=2, gravity=[0.0, case.gravity], density=float(case.params.rho),
+        kind="squeeze", dim=2, gravity=[0.0, 0.0], density=float(case.params.rho),
         kappa=float(case.params.kappa),
         domain=dict(min=[-0.03, 0.0], max=[0.03, Y_TOP + 0.01 + s * dur + 0.02]),
         plates=[dict(center=[0.0, 0.01], half_size=[0.02, 0.005]),
@@ -111,35 +98,37 @@ def top_region(case: Case, t):
     return region
 
 
-def run(case: Case, dx, fracture):
+def run(case: Case, dx, fracture: bool, resample: bool):
     sc = scene(case)
     params = case.params
     times = np.linspace(case.duration / FRAMES, case.duration, FRAMES)
-    cfg = FractureConfig(case.ratio)
+    cfg = FractureConfig(neck_thickness=H_C)
     sim = jaxfoam.Simulator(sc, times, params, dx, ppc=case.ppc, fracture=cfg if fracture else None,
-                            seed=case.seed)
-    thr = cfg.threshold(2)
+                            resample=ResampleConfig(every=RESAMPLE_EVERY) if resample else None, seed=case.seed)
 
     def observe(state, prm):
         f = collider_force(state, prm, sc, sim.grid, sim.dt, region=top_region(case, state.t))
         _, gm = jaxfoam.p2g(state, prm, sim.grid, sim.dt)
-        ratio = density_ratio(state, gm, sim.grid)
-        return dict(x=state.x, force=f[1], weak=jnp.sum(state.active & (ratio < thr)),
-                    J=jnp.max(jnp.where(state.active, jaxfoam.det(state.F), 0.0)))
+        weak = cfg.weak(state, gm, sim.grid)
+        h = neck_thickness(state, sim.grid, H_C)
+        between = state.active & (state.x[:, 1] > 0.017) & (state.x[:, 1] < Y_TOP + case.speed * state.t - 0.007)
+        return dict(x=state.x, active=state.active, force=f[1], weak=weak,
+                    hmin=jnp.min(jnp.where(between, h, jnp.inf)))
 
     with C.Timer() as tm:
         final, frames, health = sim.rollout(params, observe=observe)
         frames = jax.device_get(frames)
     sim.check(frames, health)
-    return dict(frames=frames, times=times, seconds=tm.seconds, sim=sim)
+    return dict(frames=frames, times=times, seconds=tm.seconds, sim=sim, points=int(sim.state0.active.sum()),
+                final_points=int(np.sum(frames["active"][-1])))
 
 
-def connected(x, dx, y_plate):
-    """Whether the material touching the top plate (centre at y_plate, m) is connected to the material
-    on the bottom plate."""
+def connected(x, mask, dx, y_plate):
+    """Whether the material (points where `mask`) touching the top plate (centre at y_plate, m) is
+    connected to the material on the bottom plate."""
     lo, hi = np.array([-0.03, 0.0]), np.array([0.03, y_plate + 0.01])
     pixel = dx / 2
-    img = C.rasterize(x, np.ones(len(x), bool), lo, hi, pixel, COVER * dx)
+    img = C.rasterize(x, mask, lo, hi, pixel, COVER * dx)
     ys = lo[1] + (np.arange(img.shape[0]) + 0.5) * pixel
     top_row = int(np.searchsorted(ys, y_plate - 0.005))
     bottom_row = int(np.searchsorted(ys, 0.015))
@@ -159,31 +148,58 @@ def connected(x, dx, y_plate):
         reach = grown
 
 
-def pinch_off(out, dx, case: Case):
-    """Pinch-off measures of a run: extension at disconnection (m, nan: still connected at the end),
-    at the force drop (m), weak points then, the most weak points while still connected, the largest
-    J = det F, and the pull (N/m) at the last connected frame."""
+def pinch_off(out, dx, case: Case, fracture: bool):
+    """Pinch-off measures of a run, m of plate travel (nan: not within the run): e_load (the pull first
+    below FORCE_DROP of its peak, after the peak), e_geom (geometric disconnection for good), e_path
+    (disconnection through the points not released by the fracture stage), and the neck thickness
+    series (m)."""
     fr, times = out["frames"], out["times"]
-    conn = [connected(fr["x"][k], dx, Y_TOP + case.speed * t) for k, t in enumerate(times)]
-    k_sep = next((k for k in range(len(conn)) if not any(conn[k:])), None)
+    ext = lambda k: case.speed * times[k] if k is not None else float("nan")
     f = fr["force"]
-    peak = np.max(f)
-    low = np.abs(f) < FORCE_DROP * peak
-    k_f = next((k for k in range(len(f)) if low[k:].all()), None)
-    ext = (lambda k: case.speed * times[k] if k is not None else float("nan"))
-    k_end = len(times) if k_sep is None else k_sep
-    return dict(e_sep=ext(k_sep), e_force=ext(k_f), weak=int(fr["weak"][k_sep]) if k_sep is not None else -1,
-                weak_conn=int(np.max(fr["weak"][:k_end])) if k_end > 0 else 0, J=float(np.max(fr["J"])),
-                f_last=float(f[k_end - 1]) if k_end > 0 else float("nan"), conn=conn)
+    k_peak = int(np.argmax(f))
+    k_load = next((k for k in range(k_peak, len(f)) if f[k] < FORCE_DROP * f[k_peak]), None)
+
+    def for_good(flags):
+        return next((k for k in range(len(flags)) if not any(flags[k:])), None)
+
+    y = lambda t: Y_TOP + case.speed * t
+    geom = [connected(fr["x"][k], fr["active"][k], dx, y(t)) for k, t in enumerate(times)]
+    path = ([connected(fr["x"][k], fr["active"][k] & ~fr["weak"][k], dx, y(t)) for k, t in enumerate(times)]
+            if fracture else geom)
+    return dict(e_load=ext(k_load), e_geom=ext(for_good(geom)), e_path=ext(for_good(path)), hmin=fr["hmin"],
+                peak=float(f[k_peak]), weak=fr["weak"].sum(axis=1))
 
 
-def measure(case: Case, dx, fracture, cache):
-    """Run and measure one (case, dx, fracture); a plain run ignores the threshold, so it is shared."""
-    key = (dataclasses.replace(case, ratio=None) if not fracture else case, dx, fracture)
-    if key not in cache:
-        out = run(case, dx, fracture)
-        cache[key] = dict(out=out, **pinch_off(out, dx, case))
-    return cache[key]
+def slump_check(fracture: bool):
+    """The 2D slump of experiments/slump.py (tau' = SLUMP_TAU, frictionless floor, H/dx = SLUMP_RES),
+    plain or with fracture (h_c = SLUMP_HC dx): final height / H, spread (m), most points the criterion
+    marks in a frame, wall s."""
+    import math
+    from experiments import slump as S
+    sc = S.slump_scene(2, "slip")
+    dx = S.HEIGHT / SLUMP_RES
+    st = S.initial_state(sc, dx)
+    eta, run_time = S.FLOOR_SETTINGS["slip"]
+    params = S.BASE.replace(sigma_y=math.sqrt(3.0) * SLUMP_TAU * S.RHO * S.G * S.HEIGHT, eta=eta)
+    cfg = FractureConfig(neck_thickness=SLUMP_HC * dx)
+    times = np.linspace(run_time / S.FRAMES, run_time, S.FRAMES)
+    sim = jaxfoam.Simulator(sc, times, params, dx, state0=st, fracture=cfg if fracture else None)
+
+    def observe(s, p):
+        _, gm = jaxfoam.p2g(s, p, sim.grid, sim.dt)
+        near = (jnp.abs(s.x[:, 0]) < 0.25 * S.RADIUS) & s.active
+        return dict(top=jnp.max(jnp.where(near, s.x[:, 1], -jnp.inf)),
+                    spread=jnp.max(jnp.where(s.active, jnp.abs(s.x[:, 0]), 0.0)),
+                    weak=jnp.sum(cfg.weak(s, gm, sim.grid)))
+
+    with C.Timer() as tm:
+        _, fr, health = sim.rollout(params, observe=observe)
+        fr = jax.device_get(fr)
+    sim.check(fr, health)
+    x0 = np.asarray(st.x)
+    top0 = float(np.max(x0[np.abs(x0[:, 0]) < 0.25 * S.RADIUS, 1]))
+    return dict(h=1.0 - (top0 - fr["top"][-1]) / S.HEIGHT, spread=float(fr["spread"][-1]),
+                weak=int(np.max(fr["weak"])), seconds=tm.seconds, dx=dx, h_c=SLUMP_HC * dx)
 
 
 def mm(v):
@@ -192,149 +208,143 @@ def mm(v):
 
 def main(argv=None):
     args = C.parse_args(__doc__, argv)
-    cases = list(CASES)[:1] if args.quick else list(CASES)
-    survey = list(SURVEY)[:1] if args.quick else list(SURVEY)
-    dxs = DXS[:2] if args.quick else DXS
-    survey_dxs = DXS[:1] if args.quick else DXS[:2]
-    cache, results, surveyed = {}, {}, {}
-    for table, names, grid_dxs, src in ((results, cases, dxs, CASES), (surveyed, survey, survey_dxs, SURVEY)):
-        for name in names:
-            for dx in grid_dxs:
-                for fracture in (False, True):
-                    res = measure(src[name], dx, fracture, cache)
-                    table[(name, dx, fracture)] = res
-                    print(f"{name}, dx {dx * 1000:g} mm, fracture {fracture}: pinch-off at {mm(res['e_sep']):.1f} mm "
-                          f"(force: {mm(res['e_force']):.1f} mm), weak while connected {res['weak_conn']}, "
-                          f"{res['out']['seconds']:.0f} s", flush=True)
+    if args.quick:
+        plan = [("viscous (Bingham-like)", False)]
+        dxs = DXS[:2]
+    else:
+        plan = [(m, rs) for m in CASES for rs in (True, False)]
+        dxs = DXS
+    slump = {} if args.quick else {f: slump_check(f) for f in (False, True)}
+    for f, r in slump.items():
+        print(f"slump, fracture {f}: height {r['h']:.3f} H, spread {1000 * r['spread']:.1f} mm, weak {r['weak']}, "
+              f"{r['seconds']:.0f} s", flush=True)
+    results = {}
+    for mat, rs in plan:
+        for dx in dxs:
+            for fracture in (False, True):
+                out = run(CASES[mat], dx, fracture, rs)
+                res = dict(out=out, **pinch_off(out, dx, CASES[mat], fracture))
+                results[(mat, rs, dx, fracture)] = res
+                print(f"{mat}, resampling {rs}, dx {dx * 1000:g} mm, fracture {fracture}: load pinch-off "
+                      f"{mm(res['e_load']):.0f} mm, geometric {mm(res['e_geom']):.0f} mm, load path "
+                      f"{mm(res['e_path']):.0f} mm, {out['seconds']:.0f} s", flush=True)
 
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    fig, axes = plt.subplots(len(cases), 3, figsize=(13, 4.2 * len(cases)), squeeze=False)
-    for r, mat in enumerate(cases):
+    fig, axes = plt.subplots(len(plan), 4, figsize=(17, 4.2 * len(plan)), squeeze=False)
+    for r, (mat, rs) in enumerate(plan):
         case = CASES[mat]
+        label = f"{mat}, {'with' if rs else 'no'} resampling"
         ax = axes[r, 0]
         for fracture, mk in ((False, "o-"), (True, "s--")):
-            ax.plot([1000 * dx for dx in dxs], [mm(results[(mat, dx, fracture)]["e_sep"]) for dx in dxs], mk,
-                    label="with fracture" if fracture else "plain MPM")
+            ax.plot([1000 * dx for dx in dxs], [mm(results[(mat, rs, dx, fracture)]["e_load"]) for dx in dxs], mk,
+                    label=f"with fracture (h_c {1000 * H_C:g} mm)" if fracture else "plain MPM")
         ax.set_xticks([1000 * dx for dx in dxs])
         ax.set_xlabel("dx (mm)")
-        ax.set_ylabel("pinch-off extension (mm)\n(missing: connected at the end)")
-        ax.set_title(mat, fontsize=10)
-        ax.legend()
+        ax.set_ylabel(f"load pinch-off (mm of travel)\n(missing: pull never below {FORCE_DROP:.0%} of peak)")
+        ax.set_title(label, fontsize=10)
+        ax.legend(fontsize=8)
         ax = axes[r, 1]
         for dx in dxs:
             for fracture, ls in ((False, "-"), (True, "--")):
-                o = results[(mat, dx, fracture)]["out"]
+                o = results[(mat, rs, dx, fracture)]["out"]
                 ax.plot(1000 * case.speed * o["times"], o["frames"]["force"], ls, lw=1,
                         label=f"dx {1000 * dx:g} mm{' fracture' if fracture else ''}")
         ax.set_xlabel("top plate travel (mm)")
         ax.set_ylabel("pull on the foam (N/m)")
         ax.legend(fontsize=7)
         ax = axes[r, 2]
-        # the coarsest dx for the 9-per-cell cases (where the thread lasts), the finest otherwise
-        dx = dxs[0] if case.ppc == 9 else dxs[-1]
-        for c, fracture in enumerate((False, True)):
-            res = results[(mat, dx, fracture)]
+        for dx in dxs:
+            res = results[(mat, rs, dx, False)]
+            h = np.where(np.isfinite(res["hmin"]), res["hmin"], np.nan)
+            ax.plot(1000 * case.speed * res["out"]["times"], 1000 * h, lw=1, label=f"plain, dx {1000 * dx:g} mm")
+        ax.axhline(1000 * H_C, color="k", lw=0.8, ls=":", label="h_c")
+        ax.set_xlabel("top plate travel (mm)")
+        ax.set_ylabel("neck thickness estimate (mm)")
+        ax.legend(fontsize=7)
+        ax = axes[r, 3]
+        dx = dxs[-1]
+        for fracture in (False, True):
+            res = results[(mat, rs, dx, fracture)]
             o = res["out"]
-            if np.isfinite(res["e_sep"]):
-                k = int(np.argmin(np.abs(case.speed * o["times"] - res["e_sep"])))
-                k = min(k + 2, len(o["times"]) - 1)
-            else:
-                k = len(o["times"]) - 1
-            x = o["frames"]["x"][k]
-            ax.scatter(x[:, 0] + (0.025 if fracture else -0.005), x[:, 1], s=0.5 if dx < 0.002 else 2, lw=0,
+            e = res["e_load"] if np.isfinite(res["e_load"]) else case.speed * o["times"][-1]
+            k = min(int(np.argmin(np.abs(case.speed * o["times"] - e))) + 5, len(o["times"]) - 1)
+            act = o["frames"]["active"][k]
+            x = o["frames"]["x"][k][act]
+            weak = o["frames"]["weak"][k][act] if fracture else np.zeros(len(x), bool)
+            off = 0.025 if fracture else -0.005
+            ax.scatter(x[~weak, 0] + off, x[~weak, 1], s=0.5 if dx < 0.002 else 2, lw=0,
                        c="#d1495b" if fracture else "#4a7ab5")
-            ax.text(0.025 if fracture else -0.005, 0.005, f"{1000 * case.speed * o['times'][k]:.0f} mm",
-                    ha="center", fontsize=7)
+            ax.scatter(x[weak, 0] + off, x[weak, 1], s=0.5 if dx < 0.002 else 2, lw=0, c="#999999")
+            ax.text(off, 0.005, f"{1000 * case.speed * o['times'][k]:.0f} mm", ha="center", fontsize=7)
         ax.set_aspect("equal")
-        ax.set_title(f"dx {1000 * dx:g} mm, just after pinch-off (or at the end)\n(left plain, right fracture)",
-                     fontsize=9)
+        ax.set_title(f"dx {1000 * dx:g} mm, 5 mm after the load pinch-off\n(left plain, right fracture; "
+                     f"grey: released points)", fontsize=9)
     fig.tight_layout()
     C.save_fig(fig, NAME, args.quick)
 
     rows = []
-    for mat in cases:
+    for mat, rs in plan:
         for dx in dxs:
             for fracture in (False, True):
-                res = results[(mat, dx, fracture)]
-                rows.append([mat, 1000 * dx, "yes" if fracture else "no", mm(res["e_sep"]), mm(res["e_force"]),
-                             res["weak"], res["weak_conn"], int(res["out"]["sim"].state0.active.sum()),
-                             res["out"]["sim"].total_substeps, res["out"]["seconds"]])
-    table = C.md_table(["case", "dx (mm)", "fracture", "pinch-off extension (mm)", "force-drop extension (mm)",
-                        "weak points then", "most weak points while connected", "points", "substeps", "wall s"],
-                       rows)
-    srows = []
-    for name in survey:
-        for dx in survey_dxs:
-            a, b = surveyed[(name, dx, False)], surveyed[(name, dx, True)]
-            srows.append([name, 1000 * dx, mm(a["e_sep"]), mm(b["e_sep"]), a["weak_conn"], b["weak"], a["J"],
-                          a["f_last"], a["out"]["seconds"] + b["out"]["seconds"]])
-    stable = C.md_table(["setting", "dx (mm)", "pinch-off plain (mm)", "pinch-off fracture (mm)",
-                         "plain: most weak points while connected", "fracture: weak points at pinch-off",
-                         "plain: largest det F", "plain: pull at last connected frame (N/m)", "wall s (both)"],
-                        srows)
-
-    spairs = [(surveyed[(n, dx, False)], surveyed[(n, dx, True)]) for n in survey for dx in survey_dxs]
-    same = lambda a, b: (np.isnan(a["e_sep"]) and np.isnan(b["e_sep"])) or np.isclose(a["e_sep"], b["e_sep"])
-    changed = sum(1 for m in cases if CASES[m].ratio is None for dx in dxs
-                  if not same(results[(m, dx, False)], results[(m, dx, True)]))
-    s_changed = sum(1 for a, b in spairs if not same(a, b))
-    default_cases = [m for m in cases if CASES[m].ratio is None]
-    max_weak = max(results[(m, dx, f)]["weak"] for m in default_cases for dx in dxs for f in (False, True))
-    s_weak = max(max(a["weak_conn"], b["weak"]) for a, b in spairs)
-    s_open = [(n, dx) for n in survey for dx in survey_dxs if np.isnan(surveyed[(n, dx, False)]["e_sep"])]
-    s_ext = [mm(surveyed[(n, dx, False)]["e_sep"]) for n in survey for dx in survey_dxs]
-    s_ext = [v for v in s_ext if np.isfinite(v)]
+                res = results[(mat, rs, dx, fracture)]
+                o = res["out"]
+                rows.append([mat, "yes" if rs else "no", 1000 * dx, "yes" if fracture else "no", mm(res["e_load"]),
+                             mm(res["e_geom"]), mm(res["e_path"]), res["peak"], o["points"], o["final_points"],
+                             o["sim"].total_substeps, o["seconds"]])
+    table = C.md_table(["case", "resampling", "dx (mm)", "fracture", "load pinch-off (mm)",
+                        "geometric pinch-off (mm)", "load-path pinch-off (mm)", "peak pull (N/m)",
+                        "points at start", "points at end", "substeps", "wall s"], rows)
+    crow = []
+    for mat, rs in plan:
+        for fracture in (False, True):
+            e = [mm(results[(mat, rs, dx, fracture)]["e_load"]) for dx in dxs]
+            steps = [e[i + 1] - e[i] for i in range(len(e) - 1)]
+            crow.append([mat, "yes" if rs else "no", "yes" if fracture else "no", ", ".join(f"{v:.0f}" for v in e),
+                         ", ".join(f"{v:+.0f}" for v in steps)])
+    ctable = C.md_table(["case", "resampling", "fracture", "load pinch-off at dx " +
+                         ", ".join(f"{1000 * dx:g}" for dx in dxs) + " mm", "change as dx halves (mm)"], crow)
+    # neck thickness at a fixed travel, plain runs, to show that the necking itself converges
+    hrow = []
+    for mat, rs in plan:
+        for travel in (0.01, 0.02):
+            vals = []
+            for dx in dxs:
+                res = results[(mat, rs, dx, False)]
+                k = int(np.argmin(np.abs(CASES[mat].speed * res["out"]["times"] - travel)))
+                vals.append(mm(float(res["hmin"][k])))
+            hrow.append([mat, "yes" if rs else "no", 1000 * travel, ", ".join(f"{v:.2f}" for v in vals)])
+    htable = C.md_table(["case", "resampling", "travel (mm)", "plain: neck thickness estimate at dx " +
+                         ", ".join(f"{1000 * dx:g}" for dx in dxs) + " mm (mm)"], hrow)
     describe = lambda p: f"mu {p.mu} Pa, kappa {p.kappa} Pa, sigma_y {p.sigma_y} Pa, eta {p.eta} Pa s^m, m {p.m}"
-    lines = [
-        f"- Pinch-off extension: top plate travel at the first frame after which the material on the two "
-        f"plates stays disconnected (raster of dx/2 pixels, filled within {COVER} dx of a point; nan: still "
-        f"connected at the end). Force-drop extension: travel after which the plate's pull stays below "
-        f"{FORCE_DROP:.0%} of its peak (nan: never; elastic ringing of the detached piece can keep it above). "
-        f"Frames every 1/{FRAMES} of the run. Weak points: density ratio under the case's threshold "
-        f"(default {FractureConfig().threshold(2)} in 2D).",
-        "- Wall times on a shared 2-core CPU, compile included.",
-        f"- With the default threshold the fracture stage changed the pinch-off extension in "
-        f"{changed} of {sum(1 for m in default_cases for dx in dxs)} runs of the cases above and in {s_changed} of "
-        f"{len(spairs)} survey runs; at most {max(max_weak, s_weak)} point(s) were weak at pinch-off or while "
-        f"the strip held.",
-    ]
-    if not args.quick:
-        ppc9 = "viscous, 9 points per cell"
-        wide = f"viscous, 9 per cell, threshold {WIDE_RATIO}"
-        seed1 = "viscous, 9 per cell, sampling seed 1"
-        ext_list = lambda tab, name, fr, ds: ", ".join(f"{mm(tab[(name, dx, fr)]['e_sep']):.0f}" for dx in ds)
-        dx_list = lambda ds: ", ".join(f"{1000 * dx:g}" for dx in ds)
-        lines += [
-            f"- Finding: in this model plain MPM does not draw ever-thinning single-file chains. In {len(spairs)} "
-            f"survey runs (stiffer, faster, thinner, more or less compressible, 9 points per cell, gravity) the "
-            f"strip separated at {min(s_ext):.0f} to {max(s_ext):.0f} mm of travel"
-            + (f" (still connected at the end: {', '.join(f'{n} at dx {1000 * dx:g} mm' for n, dx in s_open)})"
-               if s_open else "")
-            + ", with det F at most "
-            f"{max(a['J'] for a, b in spairs):.2f}: the strip splits between rows of points or opens cavities "
-            f"under tension (at kappa 30 kPa too) before a neck thins to one point across.",
-            f"- The one setting with a long thread is the viscous material at 9 points per cell: plain MPM "
-            f"pinches off at {ext_list(results, ppc9, False, dxs)} mm "
-            f"(dx {dx_list(dxs)} mm; nan: connected at the end), the thread 2 to 3 "
-            f"points across at dx {1000 * dxs[0]:g} mm; the same case with another random sampling (seed 1) "
-            f"gives {ext_list(surveyed, seed1, False, survey_dxs)} mm at dx "
-            f"{dx_list(survey_dxs)} mm: the coarse thread's length is set by the "
-            f"sampling, not converged. No point of it falls under the default threshold; with threshold "
-            f"{WIDE_RATIO} (a thread about one cell wide) the fracture stage gives "
-            f"{ext_list(results, wide, True, dxs)} mm. The finer "
-            f"resolutions already agree without fracture, so these runs do not show the fracture stage making "
-            f"a diverging pinch-off converge: in this model the regime it is built for (a chain that keeps "
-            f"pulling while dx shrinks) was not found.",
-        ]
-    body = (f"Strip between a still bottom plate and a rising top plate (2D plane strain, rho 100 kg/m^3); "
-            f"by default {1000 * WIDTH:.0f} mm wide, {SPEED} m/s for {DURATION} s, gravity off, 4 points per cell. "
-            f"Yield-stress foam: {describe(FOAM)}; viscous (Bingham-like): {describe(VISCOUS)}.\n\n"
+    body = (f"Strip between a still bottom plate and a rising top plate (2D plane strain, rho 100 kg/m^3), "
+            f"{1000 * WIDTH:.0f} mm wide, {SPEED} m/s for {DURATION} s, gravity off, 4 points per cell. "
+            f"Yield-stress foam: {describe(FOAM)}; viscous (Bingham-like): {describe(VISCOUS)}. Fracture: "
+            f"`FractureConfig(neck_thickness={H_C})` (h_c = {1000 * H_C:g} mm, 40% of the strip width; the "
+            f"default density-ratio criterion stays on). Resampling: `ResampleConfig(every={RESAMPLE_EVERY})`.\n\n"
             f"![fracture]({NAME}{'_quick' if args.quick else ''}.png)\n\n{table}\n"
-            f"## Survey: where does plain MPM draw strings?\n\n"
-            f"Each setting changes one thing from the yield-stress foam or the viscous material above.\n\n"
-            f"{stable}\n" + "\n".join(lines) + "\n")
+            f"### Load pinch-off against resolution\n\n{ctable}\n"
+            f"### Necking before the break (plain runs)\n\n{htable}\n")
+    if slump:
+        srow = [["plain" if not f else f"fracture, h_c {1000 * s['h_c']:.2f} mm ({SLUMP_HC} dx)", 1000 * s["dx"],
+                 s["h"], 1000 * s["spread"], s["weak"], s["seconds"]] for f, s in slump.items()]
+        body += (f"### Bulk flow: a slump stays unbroken\n\n2D slump of experiments/slump.py (column 10 cm x 10 cm, "
+                 f"tau' = {SLUMP_TAU}, frictionless floor, H/dx = {SLUMP_RES}).\n\n"
+                 + C.md_table(["run", "dx (mm)", "final height / H", "half spread (mm)",
+                               "most points marked weak in a frame", "wall s"], srow) + "\n")
+    notes = [
+        f"- Load pinch-off: plate travel at the first frame (one per mm) after the pull's peak where the pull "
+        f"is below {FORCE_DROP:.0%} of the peak (nan: not within {1000 * SPEED * DURATION:.0f} mm). Geometric "
+        f"pinch-off: travel after which the material on the two plates stays disconnected (raster of dx/2 "
+        f"pixels filled within {COVER} dx of a point). Load-path pinch-off: the same through the points the "
+        f"fracture stage does not release (equal to the geometric one for plain runs).",
+        f"- Neck thickness estimate: `jaxfoam.fracture.neck_thickness` with h_c = {1000 * H_C:g} mm at the "
+        f"thinnest point more than 5 mm from the bottom plate and 2 mm from the top one; it reads a slab's "
+        f"width below h_c and saturates at about 1.4-2.4 h_c for wide material.",
+        "- Wall times on a shared 2-core CPU, compile included.",
+    ]
+    body += "\n" + "\n".join(notes) + "\n"
     C.write_md(NAME, args.quick, "Fracture: a pulled thread at three resolutions", body)
 
 

@@ -1,15 +1,26 @@
 """Fracture of thinning foam (Yue et al. 2015, section 5).
 
 Plain MPM has no fracture: points share forces through the grid while they are within a stencil
-of each other, so a stretched thread thins into a chain of single points, one cell apart, that
-keeps pulling (numerical strings far longer than real foam makes). This stage, run after the
-constitutive update of every substep (`substep(..., fracture=FractureConfig())`), does three things:
+of each other, so a stretched thread thins into a chain of points that keeps pulling (with
+resampling keeping it sampled, a pulled viscous strip never pinches off at all: see
+experiments/results/fracture_demo.md). This stage, run after the constitutive update of every
+substep (`substep(..., fracture=FractureConfig())`), does three things:
 
-1. detect weak points: a point whose neighbourhood holds too little material. The measure is the
-   ratio of the grid density interpolated at the point, sum_n w_pn m_n / dx^d, to the point's own
-   density m_p / (J_p V0_p): about 1 in the bulk, 0.6 on a flat surface, >= 0.28 (2D) / 0.21 (3D)
-   at a box corner, and 0.19 (2D) for a single file of points 0.75 dx apart; below
-   `density_ratio` the point is weak (defaults sit between those corner and chain values).
+1. detect weak points, by one or two criteria:
+   a. neighbourhood density (always on): the ratio of the grid density interpolated at the point,
+      sum_n w_pn m_n / dx^d, to the point's own density m_p / (J_p V0_p): about 1 in the bulk, 0.6 on
+      a flat surface, >= 0.28 (2D) / 0.21 (3D) at a box corner, and 0.19 (2D) for a single file of
+      points 0.75 dx apart; below `density_ratio` the point is weak (defaults sit between those corner
+      and chain values). It is relative to the grid: it breaks what is about one cell wide, a width
+      that shrinks with dx, so alone it cannot give a pinch-off that converges with resolution.
+   b. critical neck thickness (`neck_thickness` = h_c, m; off by default): the point is weak where the
+      material around it is thinner than h_c. The thickness (`neck_thickness()`) is sqrt(12 lambda),
+      lambda the smallest eigenvalue of the covariance of the mass around the point weighted by a
+      kernel of physical width (std h_c / sqrt(2) per axis, on an auxiliary grid of spacing h_c): a slab,
+      thread or sheet of width w below h_c reads w (within 4%, at any dx well below h_c), a flat
+      surface or a box corner 1.35-1.5 h_c, the bulk sqrt(6) h_c. It depends on the material's shape
+      only, not on dx, and it is geometric: shear or compression of thick material never fires it.
+      A pulled strip then breaks when its neck reaches h_c, at a travel that converges with dx.
 2. drop the resistance along the separating direction and stop accumulating the separation as
    elastic strain: a weak point's elastic shear strain is released (bbar_e = I) and its volumetric
    stretch is released (J = 1 when J > 1; compression is kept, so pieces still push each other),
@@ -38,9 +49,10 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ._constitutive import det
-from ._mpm import Grid, apply_colliders, p2g, safe_div
+from ._mpm import Grid, _offsets, _stencil, apply_colliders, p2g, safe_div
 from ._params import Params
 from ._scene import Scene
 from ._state import State
@@ -51,6 +63,10 @@ from .resample import _from_grid, _weights
 # and 0.207 (3D); a single file of points 0.75 dx apart gives 0.19 (2D), a 2 x 2 rod of points 1 dx
 # apart 0.115 (3D). The thresholds leave intact material intact and break single-file chains.
 DEFAULT_DENSITY_RATIO = {2: 0.2, 3: 0.12}
+# Spacing of the neck-thickness estimate's auxiliary grid, in units of the critical thickness h_c.
+# Its kernel (B-spline of that grid, std NECK_GRID * h_c / sqrt(2) per axis) sees a flat surface or a
+# box corner as about 1.5 h_c thick (never weak) and a thread of width w <= h_c as about w thick.
+NECK_GRID = 1.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,10 +75,17 @@ class FractureConfig:
 
     Attributes:
       density_ratio: a point is weak when its neighbourhood density ratio is below this, in (0, 1)
-        (default: DEFAULT_DENSITY_RATIO[d]).
+        (default: DEFAULT_DENSITY_RATIO[d]). Relative to the grid: it breaks chains about one cell
+        wide, whatever dx is.
+      neck_thickness: critical thickness h_c, m (> 0), or None (default: off). A point is also weak
+        where the material around it is thinner than h_c (`neck_thickness`), a physical length: a
+        foam thread cannot be thinner than a few bubbles (shaving cream: bubbles 20-100 um), and at
+        simulation scale h_c is the thinnest neck the grid represents, about 3 dx of the finest grid
+        used or more. Off by default because no such length is known for a scene in general.
     """
 
     density_ratio: float | None = None
+    neck_thickness: float | None = None
 
     def threshold(self, d: int) -> float:
         return DEFAULT_DENSITY_RATIO[d] if self.density_ratio is None else float(self.density_ratio)
@@ -72,13 +95,21 @@ class FractureConfig:
         thr = self.threshold(d)
         if not 0 < thr < 1:
             raise ValueError(f"FractureConfig.density_ratio must be in (0, 1), got {thr}")
+        if self.neck_thickness is not None and not (np.isfinite(self.neck_thickness) and self.neck_thickness > 0):
+            raise ValueError(f"FractureConfig.neck_thickness must be a length > 0 m or None, got {self.neck_thickness}")
         return self
+
+    def weak(self, state: State, grid_m, grid: Grid) -> jax.Array:
+        """(N,) bool: the weak points of `state` (grid mass `grid_m` (G,) kg from its p2g)."""
+        weak = weak_points(state, grid_m, grid, self.threshold(state.dim))
+        if self.neck_thickness is not None:
+            weak = weak | (state.active & (neck_thickness(state, grid, self.neck_thickness) < self.neck_thickness))
+        return weak
 
     def apply(self, new: State, old: State, grid_m, grid: Grid) -> State:
         """The substep hook: detect weak points at the substep's start (`old`, grid mass `grid_m`
         (G,) kg from its p2g) and release their strain in the updated state `new`."""
-        weak = weak_points(old, grid_m, grid, self.threshold(old.dim))
-        return release(new, weak)
+        return release(new, self.weak(old, grid_m, grid))
 
 
 def density_ratio(state: State, grid_m, grid: Grid) -> jax.Array:
@@ -99,6 +130,103 @@ def density_ratio(state: State, grid_m, grid: Grid) -> jax.Array:
 def weak_points(state: State, grid_m, grid: Grid, threshold: float) -> jax.Array:
     """(N,) bool: active points whose neighbourhood density ratio is below `threshold`."""
     return state.active & (density_ratio(state, grid_m, grid) < threshold)
+
+
+def neck_grid(grid: Grid, h_c: float) -> Grid:
+    """The auxiliary grid of the neck-thickness estimate: spacing NECK_GRID * h_c (m), covering `grid`.
+
+    Its spacing depends on h_c only, not on the simulation's dx, so the estimate is resolution
+    independent once the points sample the material finely (dx well below h_c)."""
+    H = NECK_GRID * float(h_c)
+    extent = (np.asarray(grid.shape) - 1) * grid.dx
+    shape = tuple(int(k) for k in np.ceil(extent / H).astype(int) + 5)
+    origin = tuple((np.asarray(grid.origin) - 2 * H).tolist())
+    return Grid(origin=origin, dx=H, shape=shape)
+
+
+def _smallest_eigenvalue(S):
+    """Smallest eigenvalue (N,) of symmetric (N, d, d) matrices, d = 2 or 3, in closed form (the
+    trigonometric solution of the characteristic cubic in 3D)."""
+    d = S.shape[-1]
+    tr = jnp.trace(S, axis1=-2, axis2=-1)
+    if d == 2:
+        a, b, c = S[:, 0, 0], S[:, 0, 1], S[:, 1, 1]
+        return 0.5 * tr - jnp.sqrt(0.25 * (a - c) ** 2 + b ** 2)
+    q = tr / 3.0
+    off = S[:, 0, 1] ** 2 + S[:, 0, 2] ** 2 + S[:, 1, 2] ** 2
+    p2 = sum((S[:, i, i] - q) ** 2 for i in range(3)) + 2.0 * off
+    p = jnp.sqrt(p2 / 6.0)
+    ok = p > 1e-30 * jnp.maximum(jnp.abs(q), 1e-300)
+    B = (S - q[:, None, None] * jnp.eye(3, dtype=S.dtype)[None]) / jnp.where(ok, p, 1.0)[:, None, None]
+    r = jnp.clip(0.5 * det(B), -1.0, 1.0)
+    phi = jnp.arccos(r) / 3.0
+    return jnp.where(ok, q + 2.0 * p * jnp.cos(phi + 2.0 * np.pi / 3.0), q)
+
+
+def neck_thickness(state: State, grid: Grid, h_c: float) -> jax.Array:
+    """Local thickness of the material around each point (N,), m (stop-gradient values).
+
+    The material's mass around a point, weighted by a smooth kernel of physical width (the B-spline
+    of `neck_grid`, std NECK_GRID h_c / sqrt(2) per axis), has a covariance whose smallest eigenvalue
+    lambda is the spread across the thinnest direction; the thickness is sqrt(12 lambda), the width
+    of a uniform slab of that spread. Each point counts as a small box of its current volume (edge
+    (J V0)^(1/d)), so a single file of points is as thick as one point. A thread or sheet of width
+    w below about h_c gives about w; a flat surface or a box corner about 1.5 h_c; the bulk about
+    2.4 h_c. Inactive points get inf.
+
+    Computed with one deposit (mass, first and second moments about the auxiliary nodes) and one
+    gather on the auxiliary grid of spacing NECK_GRID h_c: the estimate depends on h_c and on where
+    the material is, not on dx.
+    """
+    d = state.dim
+    aux = neck_grid(grid, h_c)
+    H = aux.dx
+    x = jax.lax.stop_gradient(state.x)
+    dtype = x.dtype
+    m = jnp.where(state.active, jax.lax.stop_gradient(state.mass), 0.0)
+    J = det(jax.lax.stop_gradient(state.F))
+    own = m * jnp.where(state.active & (J > 0), jnp.abs(state.vol0 * J), 0.0) ** (2.0 / d) / 12.0
+    pairs = [(i, j) for i in range(d) for j in range(i, d)]           # upper triangle of the moments
+    base, fx, w = _stencil(x, aux)
+    strides = np.cumprod((aux.shape[1:] + (1,))[::-1])[::-1]
+    # Per stencil node (K of them): weight (N,), offset r = x_p - x_n per axis (N,), flat index.
+    wts, rel, idx = [], [], []
+    for off in _offsets(d):
+        wt = w[off[0]][:, 0]
+        for k in range(1, d):
+            wt = wt * w[off[k]][:, k]
+        wts.append(wt)
+        rel.append([H * (fx[:, k] - off[k]) for k in range(d)])
+        idx.append(sum((base[:, k] + off[k]) * int(strides[k]) for k in range(d)))
+    # Moments of the mass about each node: sum_p w m [1, r, r r^T + edge^2/12 I] (one scatter).
+    vals = []
+    for wt, r in zip(wts, rel):
+        wm = wt * m
+        vals.append(jnp.stack([wm] + [wm * r[i] for i in range(d)]
+                              + [wm * r[i] * r[j] + (wt * own if i == j else 0.0) for i, j in pairs], -1))
+    nodes = jnp.zeros((aux.num_nodes, len(vals[0][0])), dtype).at[jnp.concatenate(idx)].add(
+        jnp.concatenate(vals), mode="drop")
+    # Gather back and move each node's moments to the point: with s = x_q - x_n and r = x_p - x_n,
+    # x_q - x_p = s - r, so S1' = S1 - S0 r and S2' = S2 - S1 r^T - r S1^T + S0 r r^T.
+    g = nodes.at[jnp.concatenate(idx)].get(mode="fill", fill_value=0.0)
+    n = x.shape[0]
+    M0, M1, M2 = 0.0, [0.0] * d, {ij: 0.0 for ij in pairs}
+    for k, (wt, r) in enumerate(zip(wts, rel)):
+        gk = g[k * n:(k + 1) * n]
+        S0, S1 = gk[:, 0], [gk[:, 1 + i] for i in range(d)]
+        M0 = M0 + wt * S0
+        for i in range(d):
+            M1[i] = M1[i] + wt * (S1[i] - S0 * r[i])
+        for c, (i, j) in enumerate(pairs):
+            S2 = gk[:, 1 + d + c]
+            M2[(i, j)] = M2[(i, j)] + wt * (S2 - S1[i] * r[j] - r[i] * S1[j] + S0 * r[i] * r[j])
+    M0s = jnp.where(M0 > 0, M0, 1.0)
+    mean = [M1[i] / M0s for i in range(d)]
+    cov = [[None] * d for _ in range(d)]
+    for i, j in pairs:
+        cov[i][j] = cov[j][i] = M2[(i, j)] / M0s - mean[i] * mean[j]
+    lam = jnp.maximum(_smallest_eigenvalue(jnp.stack([jnp.stack(row, -1) for row in cov], -2)), 0.0)
+    return jnp.where(state.active & (M0 > 0), jnp.sqrt(12.0 * lam), jnp.inf)
 
 
 def release(state: State, weak) -> State:

@@ -164,7 +164,7 @@ def test_tiny_fit_with_resampling_and_fracture_runs_end_to_end(data, monkeypatch
     assert all(np.isfinite(v) for v in res.stderr.values())
     s = json.loads(json.dumps(res.to_dict()))["settings"]
     assert s["resample"]["every"] == 3 and s["resample"]["sparse_fraction"] == 1.0 and s["resample"]["ppc"] == 4
-    assert s["fracture"] == {"density_ratio": 0.45}
+    assert s["fracture"] == {"density_ratio": 0.45, "neck_thickness": None}
     plain = build_problem(silh, FitSettings(dx=FIT_DX, fixed={"eta": 5.0, "m": 0.6}))
     assert plain.sim.resample is None and plain.sim.state0.capacity == int(np.sum(plain.sim.state0.active))
     assert s["capacity"] == 2 * plain.sim.state0.capacity  # capacity_factor 2: slots for inserted points
@@ -202,7 +202,7 @@ def test_fit_command_line_flags_reach_the_settings():
                                                         "--fracture", "density_ratio=0.15"]))
     assert some.resample == ResampleConfig(every=10, sparse_fraction=0.4)
     assert some.fracture == FractureConfig(density_ratio=0.15)
-    assert some.to_dict()["resample"]["every"] == 10 and some.to_dict()["fracture"] == {"density_ratio": 0.15}
+    assert some.to_dict()["resample"]["every"] == 10 and some.to_dict()["fracture"] == {"density_ratio": 0.15, "neck_thickness": None}
     with pytest.raises(CalibrationError, match="fracture: FractureConfig.density_ratio must be in"):
         settings_from_args(parser.parse_args(base + ["--fracture", "density_ratio=2"]))
 
