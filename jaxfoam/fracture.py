@@ -20,7 +20,10 @@ substep (`substep(..., fracture=FractureConfig())`), does three things:
       thread or sheet of width w below h_c reads w (within 4%, at any dx well below h_c), a flat
       surface or a box corner 1.35-1.5 h_c, the bulk sqrt(6) h_c. It depends on the material's shape
       only, not on dx, and it is geometric: shear or compression of thick material never fires it.
-      A pulled strip then breaks when its neck reaches h_c, at a travel that converges with dx.
+      A pulled strip then breaks when its neck reaches h_c, at a plate travel that converges with dx
+      where plain MPM's does not (experiments/results/fracture_demo.md); the break must come before
+      the strip splits numerically between rows of points, which resampling (`jaxfoam.resample`)
+      prevents. Cost: one deposit and one gather of 1 + d + d(d+1)/2 moments per point per substep.
 2. drop the resistance along the separating direction and stop accumulating the separation as
    elastic strain: a weak point's elastic shear strain is released (bbar_e = I) and its volumetric
    stretch is released (J = 1 when J > 1; compression is kept, so pieces still push each other),
@@ -36,6 +39,8 @@ substep (`substep(..., fracture=FractureConfig())`), does three things:
 3. reconnection: the released strain is the plastic adjustment. When a weak point's neighbourhood
    fills again (pieces touch, or resampling refills it), it is no longer weak and accumulates elastic
    strain from that relaxed state: the foam resists stretching again, as after bubbles reconnect.
+   (Resampling does not know which points are released: it refills a released neck as it is drawn
+   out, so the pieces can stay linked by a thread that carries no load.)
 
 The release is isotropic (a weak point keeps no deviatoric stress in any direction): a
 simplification of "resistance along the separating direction" that needs no eigen-decomposition
@@ -132,6 +137,13 @@ def weak_points(state: State, grid_m, grid: Grid, threshold: float) -> jax.Array
     return state.active & (density_ratio(state, grid_m, grid) < threshold)
 
 
+def _prod(factors):
+    out = factors[0]
+    for f in factors[1:]:
+        out = out * f
+    return out
+
+
 def neck_grid(grid: Grid, h_c: float) -> Grid:
     """The auxiliary grid of the neck-thickness estimate: spacing NECK_GRID * h_c (m), covering `grid`.
 
@@ -188,38 +200,27 @@ def neck_thickness(state: State, grid: Grid, h_c: float) -> jax.Array:
     own = m * jnp.where(state.active & (J > 0), jnp.abs(state.vol0 * J), 0.0) ** (2.0 / d) / 12.0
     pairs = [(i, j) for i in range(d) for j in range(i, d)]           # upper triangle of the moments
     base, fx, w = _stencil(x, aux)
+    offs = np.asarray(_offsets(d))                                    # (K, d), static
+    # (K, N) stencil weights: w[o][:, k] is the 1D weight of offset o along axis k
+    wts = jnp.stack([_prod([w[o[k]][:, k] for k in range(d)]) for o in offs])
+    rel = [H * (fx[None, :, i] - jnp.asarray(offs[:, i], dtype)[:, None]) for i in range(d)]  # x_p - x_n
     strides = np.cumprod((aux.shape[1:] + (1,))[::-1])[::-1]
-    # Per stencil node (K of them): weight (N,), offset r = x_p - x_n per axis (N,), flat index.
-    wts, rel, idx = [], [], []
-    for off in _offsets(d):
-        wt = w[off[0]][:, 0]
-        for k in range(1, d):
-            wt = wt * w[off[k]][:, k]
-        wts.append(wt)
-        rel.append([H * (fx[:, k] - off[k]) for k in range(d)])
-        idx.append(sum((base[:, k] + off[k]) * int(strides[k]) for k in range(d)))
+    idx = sum((base[None, :, k] + jnp.asarray(offs[:, k], jnp.int32)[:, None]) * int(strides[k])
+              for k in range(d)).reshape(-1)
     # Moments of the mass about each node: sum_p w m [1, r, r r^T + edge^2/12 I] (one scatter).
-    vals = []
-    for wt, r in zip(wts, rel):
-        wm = wt * m
-        vals.append(jnp.stack([wm] + [wm * r[i] for i in range(d)]
-                              + [wm * r[i] * r[j] + (wt * own if i == j else 0.0) for i, j in pairs], -1))
-    nodes = jnp.zeros((aux.num_nodes, len(vals[0][0])), dtype).at[jnp.concatenate(idx)].add(
-        jnp.concatenate(vals), mode="drop")
+    wm = wts * m[None, :]
+    chans = ([wm] + [wm * rel[i] for i in range(d)]
+             + [wm * rel[i] * rel[j] + (wts * own[None, :] if i == j else 0.0) for i, j in pairs])
+    nodes = jnp.zeros((aux.num_nodes, len(chans)), dtype).at[idx].add(
+        jnp.stack(chans, -1).reshape(-1, len(chans)), mode="drop")
     # Gather back and move each node's moments to the point: with s = x_q - x_n and r = x_p - x_n,
     # x_q - x_p = s - r, so S1' = S1 - S0 r and S2' = S2 - S1 r^T - r S1^T + S0 r r^T.
-    g = nodes.at[jnp.concatenate(idx)].get(mode="fill", fill_value=0.0)
-    n = x.shape[0]
-    M0, M1, M2 = 0.0, [0.0] * d, {ij: 0.0 for ij in pairs}
-    for k, (wt, r) in enumerate(zip(wts, rel)):
-        gk = g[k * n:(k + 1) * n]
-        S0, S1 = gk[:, 0], [gk[:, 1 + i] for i in range(d)]
-        M0 = M0 + wt * S0
-        for i in range(d):
-            M1[i] = M1[i] + wt * (S1[i] - S0 * r[i])
-        for c, (i, j) in enumerate(pairs):
-            S2 = gk[:, 1 + d + c]
-            M2[(i, j)] = M2[(i, j)] + wt * (S2 - S1[i] * r[j] - r[i] * S1[j] + S0 * r[i] * r[j])
+    g = nodes.at[idx].get(mode="fill", fill_value=0.0).reshape(wts.shape + (len(chans),))
+    S0, S1 = g[..., 0], [g[..., 1 + i] for i in range(d)]
+    M0 = jnp.sum(wts * S0, 0)
+    M1 = [jnp.sum(wts * (S1[i] - S0 * rel[i]), 0) for i in range(d)]
+    M2 = {(i, j): jnp.sum(wts * (g[..., 1 + d + c] - S1[i] * rel[j] - rel[i] * S1[j] + S0 * rel[i] * rel[j]), 0)
+          for c, (i, j) in enumerate(pairs)}
     M0s = jnp.where(M0 > 0, M0, 1.0)
     mean = [M1[i] / M0s for i in range(d)]
     cov = [[None] * d for _ in range(d)]
