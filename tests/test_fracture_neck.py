@@ -127,3 +127,33 @@ def test_neck_thickness_validation_names_the_field():
     with pytest.raises(ValueError, match="neck_thickness"):
         FractureConfig(neck_thickness=float("nan")).validate(3)
     assert FractureConfig(neck_thickness=H_C).validate(2).neck_thickness == H_C
+
+
+def test_gradient_through_the_neck_criterion_matches_central_differences():
+    """d/d mu of the top block's mean height after 40 substeps of the thin bridge with the neck
+    criterion on (weak points released every substep) equals the central difference (step 1e-3 mu)
+    to 1e-5 relative, float64 (measured: -6.04e-9 m/Pa, agreement 1e-7; 52 of 576 points weak at the
+    start): the weak/strong decision is made on stop-gradient values and does not flip under the small
+    step, and the release is differentiated."""
+    st = _bridge(0.0015)
+    scene = jaxfoam.load_scene(dict(
+        kind="squeeze", dim=2, gravity=[0.0, -9.81], density=100.0, kappa=3000.0,
+        domain=dict(min=[-0.02, 0.0], max=[0.02, 0.07]),
+        plates=[dict(center=[0, Y0 - 0.004], half_size=[0.008, 0.002])],
+        initial_shape=dict(type="box", min=[-0.005, Y0 - 0.006], max=[0.005, Y1 + 0.006])))
+    grid = jaxfoam.make_grid(scene, DX)
+    cfg = FractureConfig(neck_thickness=H_BRIDGE)
+    top = jnp.asarray(np.asarray(st.active) & (np.asarray(st.x[:, 1]) > Y1))
+
+    def height(mu):
+        p = PARAMS.replace(mu=mu)
+        s = jax.lax.fori_loop(0, 40, lambda i, s: jaxfoam.substep(s, p, scene, grid, DT, fracture=cfg), st)
+        return jnp.sum(jnp.where(top, s.x[:, 1], 0.0)) / jnp.sum(top)
+
+    mu = jnp.asarray(PARAMS.mu)
+    g = float(jax.jit(jax.grad(height))(mu))
+    f = jax.jit(height)
+    h = 1e-3 * float(mu)
+    fd = (float(f(mu + h)) - float(f(mu - h))) / (2 * h)
+    assert np.isfinite(g) and abs(g) > 0, g
+    assert abs(g - fd) < 1e-5 * abs(fd) + 1e-15, (g, fd)
