@@ -605,15 +605,13 @@ class CalibrationProblem:
         groups = [jnp.asarray(eye[i * rows:(i + 1) * rows]) for i in range(k)]
         run = lambda basis: jax.block_until_ready(
             _residual_and_columns(z, basis, *self._args(), self.target))
-        if not self._columns_compiled:
+        first = None
+        if not self._columns_compiled:  # compile on this thread, then run the other groups concurrently
             first = run(groups[0])
             self._columns_compiled = True
-            with concurrent.futures.ThreadPoolExecutor(k - 1) as pool:
-                out = [first] + list(pool.map(run, groups[1:]))
-        else:
-            with concurrent.futures.ThreadPoolExecutor(k - 1) as pool:
-                later = [pool.submit(run, g) for g in groups[1:]]
-                out = [run(groups[0])] + [f.result() for f in later]
+        with concurrent.futures.ThreadPoolExecutor(k - 1) as pool:
+            later = [pool.submit(run, g) for g in groups[1:]]
+            out = [run(groups[0]) if first is None else first] + [f.result() for f in later]
         cols = jnp.concatenate([c for _, c in out])[:p]
         return out[0][0], cols.T
 

@@ -58,7 +58,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._constitutive import det
-from ._mpm import Grid, _offsets, _stencil, apply_colliders, p2g, safe_div
+from ._mpm import Grid, _flat_index, _offsets, _stencil, _stencil_weights, apply_colliders, p2g, safe_div
 from ._params import Params
 from ._scene import Scene
 from ._state import State
@@ -146,13 +146,6 @@ def weak_points(state: State, grid_m, grid: Grid, threshold: float) -> jax.Array
     return state.active & (density_ratio(state, grid_m, grid) < threshold)
 
 
-def _prod(factors):
-    out = factors[0]
-    for f in factors[1:]:
-        out = out * f
-    return out
-
-
 def neck_grid(grid: Grid, h_c: float) -> Grid:
     """The auxiliary grid of the neck-thickness estimate: spacing NECK_GRID * h_c (m), covering `grid`.
 
@@ -210,12 +203,9 @@ def neck_thickness(state: State, grid: Grid, h_c: float) -> jax.Array:
     pairs = [(i, j) for i in range(d) for j in range(i, d)]           # upper triangle of the moments
     base, fx, w = _stencil(x, aux)
     offs = np.asarray(_offsets(d))                                    # (K, d), static
-    # (K, N) stencil weights: w[o][:, k] is the 1D weight of offset o along axis k
-    wts = jnp.stack([_prod([w[o[k]][:, k] for k in range(d)]) for o in offs])
+    wts = _stencil_weights(w, _offsets(d))                            # (K, N)
     rel = [H * (fx[None, :, i] - jnp.asarray(offs[:, i], dtype)[:, None]) for i in range(d)]  # x_p - x_n
-    strides = np.cumprod((aux.shape[1:] + (1,))[::-1])[::-1]
-    idx = sum((base[None, :, k] + jnp.asarray(offs[:, k], jnp.int32)[:, None]) * int(strides[k])
-              for k in range(d)).reshape(-1)
+    idx = jnp.concatenate([_flat_index(base, off, aux) for off in _offsets(d)])  # (K N,), offset-major
     # Moments of the mass about each node: sum_p w m [1, r, r r^T + edge^2/12 I] (one scatter).
     wm = wts * m[None, :]
     chans = ([wm] + [wm * rel[i] for i in range(d)]
