@@ -360,9 +360,11 @@ def main(argv=None):
         f"width below h_c and saturates at about 1.4-2.4 h_c for wide material.",
         "- The fracture stage releases the points of a neck thinner than h_c (grey in the figure): the pull drops "
         "(load pinch-off) while those points still lie between the pieces. Without resampling they drift apart and "
-        "the geometric pinch-off follows within a few mm; with resampling the resampler, which does not know which "
-        "points are released, refills the stress-free neck as it is drawn out, so the pieces stay linked by a "
-        "thread that carries no load (geometric pinch-off late or never, load-path pinch-off at the break).",
+        "the geometric pinch-off follows within a few mm. With resampling, the resampler leaves the cells of such "
+        "a neck unfilled (`FractureConfig.holds`), so the released thread thins and parts, but later than the load "
+        "drops and not at a travel that converges with dx: it carries no stress, nothing (this model has no "
+        "surface tension) draws it back into the pieces, and the flow stretches it until its points lie more than "
+        f"{2 * COVER:g} dx apart.",
         "- Wall times on a shared 2-core CPU, compile included. Slots: a resampled run has twice the initial "
         "points' slots (`capacity_factor` 2); 'slots all used at': the travel from which the resampler can insert "
         "no more points (nan: never).",

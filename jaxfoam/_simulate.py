@@ -105,15 +105,19 @@ def _rollout_impl(state0, params, scene, frame_times, frame_dts, grid, substeps,
     def frame(state, inputs):
         t_target, dt = inputs[:2]
 
+        def _resample_pass(s, n):
+            # Cells of a fracturing neck are not refilled (FractureConfig.holds; None when off).
+            st = from_components(s)
+            hold = None if fracture is None else fracture.holds(st, grid)
+            return to_components(resample.apply(st, grid, n) if hold is None else resample.apply(st, grid, n, hold))
+
         # Within a frame the state is carried in component form (jaxfoam._mpm.to_components).
         def sub(s, i):
             s = _substep(s, params, scene, grid, dt, fracture, colliders)
             if resample is not None:
                 # Resampling pass after every `resample.every`-th substep of the whole rollout.
                 n = inputs[2] * substeps + i + 1
-                s = jax.lax.cond(n % resample.every == 0,
-                                 lambda s: to_components(resample.apply(from_components(s), grid, n)),
-                                 lambda s: s, s)
+                s = jax.lax.cond(n % resample.every == 0, lambda s: _resample_pass(s, n), lambda s: s, s)
             return s, None
 
         state = to_components(state)

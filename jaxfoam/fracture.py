@@ -40,8 +40,9 @@ substep (`substep(..., fracture=FractureConfig())`), does three things:
 3. reconnection: the released strain is the plastic adjustment. When a weak point's neighbourhood
    fills again (pieces touch, or resampling refills it), it is no longer weak and accumulates elastic
    strain from that relaxed state: the foam resists stretching again, as after bubbles reconnect.
-   (Resampling does not know which points are released: it refills a released neck as it is drawn
-   out, so the pieces can stay linked by a thread that carries no load.)
+   With a critical thickness set, resampling leaves the cells of a neck thinner than h_c unfilled
+   (`holds`), so the released neck thins and the pieces separate; the density-ratio criterion holds
+   nothing (resampling refills what it flags, as it should in a stretched sheet).
 
 The release is isotropic (a weak point keeps no deviatoric stress in any direction): a
 simplification of "resistance along the separating direction" that needs no eigen-decomposition
@@ -112,6 +113,17 @@ class FractureConfig:
         if self.neck_thickness is None:
             return sparse, jnp.zeros_like(sparse)
         return sparse, state.active & (neck_thickness(state, grid, self.neck_thickness) < self.neck_thickness)
+
+    def holds(self, state: State, grid: Grid):
+        """(N,) bool or None: the points whose cells resampling must not refill, those in a neck
+        thinner than neck_thickness (None when it is off). A released neck refilled as it is drawn
+        out keeps the two pieces joined by a thread that carries no load, so the pieces never
+        separate geometrically (measured in experiments/results/fracture_demo.md). The density-ratio
+        criterion holds nothing: it is relative to the grid, and resampling exists to refill exactly
+        the sparse, grid-thin regions it flags in a stretched sheet."""
+        if self.neck_thickness is None:
+            return None
+        return state.active & (neck_thickness(state, grid, self.neck_thickness) < self.neck_thickness)
 
     def weak(self, state: State, grid_m, grid: Grid) -> jax.Array:
         """(N,) bool: the weak points of `state` by either criterion."""
@@ -269,7 +281,7 @@ def collider_force(state: State, params: Params, scene: Scene, grid: Grid, dt, r
     v = safe_div(grid_mv, grid_m[:, None])
     v = v + jnp.where(grid_m[:, None] > 0, dt * scene.gravity.astype(v.dtype)[None, :], 0.0)
     node_x = grid.node_positions(v.dtype)
-    after = apply_colliders(v, node_x, scene, state.t + dt, colliders)
+    after = apply_colliders(v, node_x, scene, state.t + dt, colliders, grid_m, dt, grid.dx)
     dp = grid_m[:, None] * (after - v) / dt
     if region is not None:
         dp = jnp.where(region(node_x)[:, None], dp, 0.0)

@@ -116,9 +116,10 @@ class ResampleConfig:
                              f"got {self.merge_cell_capacity!r}")
         return self
 
-    def apply(self, state: State, grid: Grid, index) -> State:
-        """The rollout hook: resampling pass number `index` (an integer, folded into the jitter key)."""
-        return resample(state, grid, self, rollout_key(self, index))
+    def apply(self, state: State, grid: Grid, index, hold=None) -> State:
+        """The rollout hook: resampling pass number `index` (an integer, folded into the jitter key);
+        `hold`: optional (N,) bool, points whose cells are not refilled (see `insert`)."""
+        return resample(state, grid, self, rollout_key(self, index), hold)
 
     def prepare(self, state: State) -> State:
         """The initial state with ceil(capacity_factor * active count) slots (never fewer than now)."""
@@ -323,9 +324,14 @@ def _candidate_layout(grid: Grid, k: int):
     return ij.astype(np.int32), len(cells)
 
 
-def insert(state: State, grid: Grid, config: ResampleConfig, key):
+def insert(state: State, grid: Grid, config: ResampleConfig, key, hold=None):
     """Refill sparse cells inside the material (see the module docstring).
 
+    hold: optional (N,) bool: cells holding one of these active points are never refilled. The
+      rollout passes the points of a fracturing neck (`jaxfoam.fracture.FractureConfig.holds`): a
+      neck thinner than the critical thickness has released its stress and must be left to thin and
+      separate; refilling it as it is drawn out would keep the pieces joined by a thread that
+      carries no load.
     Returns (state, number of points inserted, LatticeSDF of the material used for the decision).
     """
     d = state.dim
@@ -374,6 +380,9 @@ def insert(state: State, grid: Grid, config: ResampleConfig, key):
     sdf = material_sdf(xs, act, grid.origin, grid.shape, grid.dx, config.closing_radius, refine)
     inside = sdf(cand) < 0.0
     sparse = count < config.sparse_fraction * ppc
+    if hold is not None:
+        held = jnp.zeros((C,), bool).at[jnp.where(act & hold, cflat, C)].set(True, mode="drop")
+        sparse = sparse & ~held
     deficit = jnp.maximum(ppc - count, 0)
     eligible = (inside & ~blocked).reshape(C, k ** d) & sparse[:, None]
     # In each cell accept `deficit` eligible candidates in a random order.
@@ -426,22 +435,27 @@ def insert(state: State, grid: Grid, config: ResampleConfig, key):
     return state, jnp.sum(valid).astype(jnp.int32), sdf
 
 
-def resample(state: State, grid: Grid, config: ResampleConfig, key) -> State:
+def resample(state: State, grid: Grid, config: ResampleConfig, key, hold=None) -> State:
     """One resampling pass: merge too-close points, then refill sparse cells inside the material.
 
-    key: a jax.random key for the candidate jitter. Pure and jit-compatible (fixed shapes).
+    key: a jax.random key for the candidate jitter; hold: optional (N,) bool, points whose cells are
+    not refilled (see `insert`). Pure and jit-compatible (fixed shapes).
     """
     state, _ = merge(state, grid, config.merge_radius * config.spacing(grid.dx, state.dim),
                      config.merge_rounds, config.merge_cell_capacity)
-    state, _, _ = insert(state, grid, config, key)
+    if hold is not None:
+        hold = hold & state.active  # merging leaves slot indices in place and deactivates absorbed points
+    state, _, _ = insert(state, grid, config, key, hold)
     return state
 
 
-def resample_with_stats(state: State, grid: Grid, config: ResampleConfig, key):
+def resample_with_stats(state: State, grid: Grid, config: ResampleConfig, key, hold=None):
     """`resample` that also returns a dict: merged (points removed), inserted, and the material sdf."""
     state, merged = merge(state, grid, config.merge_radius * config.spacing(grid.dx, state.dim),
                           config.merge_rounds, config.merge_cell_capacity)
-    state, inserted, sdf = insert(state, grid, config, key)
+    if hold is not None:
+        hold = hold & state.active
+    state, inserted, sdf = insert(state, grid, config, key, hold)
     return state, dict(merged=merged, inserted=inserted, sdf=sdf)
 
 

@@ -65,8 +65,8 @@ class RecordingResample(ResampleConfig):
     """ResampleConfig whose passes report their outcome (active count, sum of active positions) to
     the host: two rollouts with equal records made the same insert / merge decisions."""
 
-    def apply(self, state, grid, index):
-        out = super().apply(state, grid, index)
+    def apply(self, state, grid, index, hold=None):
+        out = super().apply(state, grid, index, hold)
         x = jax.lax.stop_gradient(out.x)
         jax.debug.callback(_note("resample"), jnp.sum(out.active), jnp.sum(jnp.where(out.active[:, None], x, 0.0)))
         return out

@@ -157,3 +157,60 @@ def test_gradient_through_the_neck_criterion_matches_central_differences():
     fd = (float(f(mu + h)) - float(f(mu - h))) / (2 * h)
     assert np.isfinite(g) and abs(g) > 0, g
     assert abs(g - fd) < 1e-5 * abs(fd) + 1e-15, (g, fd)
+
+
+def test_resampling_leaves_a_fracturing_neck_unfilled():
+    """A released neck must be left to thin and separate: with the neck criterion on, the cells of a
+    bridge thinner than h_c (1.5 mm, h_c 3 mm, sampled at 1 point per cell: sparse) get no inserted
+    point, while sparse cells of the thick bottom block (also 1 point per cell) are refilled as
+    without the criterion; without a hold the same pass refills the bridge too. Mass and momentum
+    are conserved either way (float64 round-off)."""
+    from jaxfoam.resample import ResampleConfig, resample_with_stats
+    k = DX / 2
+    xs = np.arange(-0.005 + k / 2, 0.005, k)
+    top = [[a, b] for a in xs for b in np.arange(Y1 + k / 2, Y1 + 0.006, k)]        # 4 per cell
+    xs1 = np.arange(-0.005 + DX / 2, 0.005, DX)
+    bot = [[a, b] for a in xs1 for b in np.arange(Y0 - 0.006 + DX / 2, Y0, DX)]     # 1 per cell
+    bridge = [[a, b] for a in (-0.0005, 0.0005) for b in np.arange(Y0 + DX / 2, Y1, DX)]  # 1 per cell
+    x = np.asarray(top + bot + bridge)
+    vol = np.where(np.arange(len(x)) < len(top), k * k, DX * DX)
+    st = jaxfoam.make_state(x, vol, PARAMS.rho * vol, capacity=2 * len(x))
+    st = st.replace(v=st.v.at[:, 0].set(0.01 * st.x[:, 1]))                         # some momentum
+    scene = jaxfoam.load_scene(dict(kind="drop", dim=2, density=100.0, kappa=3000.0,
+                                    domain=dict(min=[-0.02, 0.0], max=[0.02, 0.07]),
+                                    initial_shape=dict(type="box", min=[-0.005, Y0], max=[0.005, Y1])))
+    grid = jaxfoam.make_grid(scene, DX)
+    cfg = FractureConfig(neck_thickness=H_BRIDGE)
+    assert FractureConfig().holds(st, grid) is None          # no critical thickness: nothing held
+    rs = ResampleConfig(every=1, merge_radius=0.0)
+
+    @jax.jit
+    def both(s):
+        hold = cfg.holds(s, grid)
+        return hold, resample_with_stats(s, grid, rs, jax.random.PRNGKey(0), hold)[0], \
+            resample_with_stats(s, grid, rs, jax.random.PRNGKey(0))[0]
+
+    hold, held, free = both(st)
+    hold = np.asarray(hold)
+    n0 = len(x)
+    yc = 0.5 * (Y0 + Y1)
+    mid = lambda p: np.abs(p[:, 1] - yc) < 0.003      # the bridge's middle, where it reads its own width
+    in_mid = np.zeros(2 * n0, bool)
+    in_mid[len(top) + len(bot):n0] = mid(x[len(top) + len(bot):])
+    assert hold[in_mid].all() and not hold[:len(top) + len(bot)].any(), hold.sum()
+
+    def new_points(s):
+        new = np.asarray(s.active)[n0:]
+        return np.asarray(s.x)[n0:][new]
+
+    low = lambda p: p[:, 1] < Y0 - 0.001                                          # the bottom block
+    ph, pf = new_points(held), new_points(free)
+    assert mid(pf).sum() >= 20, mid(pf).sum()           # without a hold the bridge is refilled
+    assert mid(ph).sum() == 0, ph[mid(ph)]              # with it, never
+    assert low(ph).sum() == low(pf).sum() >= 100, (low(ph).sum(), low(pf).sum())
+    for s in (held, free):
+        m = np.asarray(s.mass * s.active)
+        assert abs(m.sum() - float(np.sum(st.mass))) < 1e-12 * m.sum()
+        p = (m[:, None] * np.asarray(s.v)).sum(0)
+        p0 = (np.asarray(st.mass)[:, None] * np.asarray(st.v)).sum(0)
+        np.testing.assert_allclose(p, p0, rtol=1e-12, atol=1e-18)
