@@ -200,7 +200,7 @@ def p2g(state: State, params: Params, grid: Grid, dt) -> tuple[jax.Array, jax.Ar
     return grid_mv[:, :d], grid_mv[:, d]
 
 
-def apply_colliders(v, node_x, scene: Scene, t, colliders=()) -> jax.Array:
+def apply_colliders(v, node_x, scene: Scene, t, colliders=(), grid_m=None, dt=None, dx=None) -> jax.Array:
     """Boundary conditions on grid velocities v (G, d) m/s at nodes node_x (G, d) m, time t s.
 
     - plates: nodes inside a plate take its velocity (sticky) or lose the approaching normal
@@ -209,7 +209,9 @@ def apply_colliders(v, node_x, scene: Scene, t, colliders=()) -> jax.Array:
       on approaching nodes;
     - domain walls: slip (outward normal velocity removed) on nodes on or beyond the boundary;
     - colliders: extra static colliders, each with `apply(v, node_x, t) -> v` (e.g.
-      `jaxfoam.sdf.SDFCollider`), applied last, in order.
+      `jaxfoam.sdf.SDFCollider`), applied last, in order; a collider with a finite `adhesion` (Pa)
+      also gets the grid mass `grid_m` (G,) kg (kg/m in 2D), the substep `dt` s and the spacing `dx`
+      m as keywords, to measure the traction the material pulls on it with.
     """
     d = v.shape[-1]
     for plate in scene.plates:
@@ -255,7 +257,10 @@ def apply_colliders(v, node_x, scene: Scene, t, colliders=()) -> jax.Array:
     v = jnp.where(node_x <= lo[None, :], jnp.maximum(v, 0.0), v)
     v = jnp.where(node_x >= hi[None, :], jnp.minimum(v, 0.0), v)
     for collider in colliders:
-        v = collider.apply(v, node_x, t)
+        if getattr(collider, "adhesion", None) is not None:
+            v = collider.apply(v, node_x, t, mass=grid_m, dt=dt, dx=dx)
+        else:
+            v = collider.apply(v, node_x, t)
     return v
 
 
@@ -263,7 +268,7 @@ def grid_update(grid_mv, grid_m, scene: Scene, grid: Grid, t, dt, colliders=()) 
     """Grid velocities (G, d) m/s at the end of the substep: momentum / mass, gravity, colliders."""
     v = safe_div(grid_mv, grid_m[:, None])
     v = v + jnp.where(grid_m[:, None] > 0, dt * scene.gravity.astype(v.dtype)[None, :], 0.0)
-    return apply_colliders(v, grid.node_positions(v.dtype), scene, t + dt, colliders)
+    return apply_colliders(v, grid.node_positions(v.dtype), scene, t + dt, colliders, grid_m, dt, grid.dx)
 
 
 def g2p(state: State, grid_v, grid: Grid) -> tuple[jax.Array, jax.Array]:

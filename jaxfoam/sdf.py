@@ -199,6 +199,13 @@ class SDFCollider:
         collider velocity).
       thickness: nodes with phi < thickness (m) count as inside: a positive value makes thin shapes
         (thinner than a grid cell) catch nodes on both sides.
+      adhesion: tensile strength of a sticky contact, Pa (>= 0), or None (default: it never lets go).
+        A sticky node is released when holding it would take a pull above this: the traction
+        m_n (v_n - v_c).n / (dt dx^(d-1)) of the material moving away from the surface (outward
+        normal n, the SDF gradient; per unit depth in 2D). A released node keeps its own velocity,
+        so the material parts from the surface there, as a marshmallow parts from a cracker pulled
+        off it; shear and compression are still held. Needs `apply(..., mass=, dt=, dx=)`, which
+        the grid update passes.
     `apply(v, node_x, t)` returns the grid velocities (G, d) m/s after contact at time t (s): inside
     nodes get the collider velocity (sticky) or lose the approaching normal velocity relative to it,
     the tangential part reduced by friction times the removed normal speed (as the floor does).
@@ -209,10 +216,18 @@ class SDFCollider:
     offsets: tuple = ()
     friction: float | str = "sticky"
     thickness: float = 0.0
+    adhesion: float | None = None
 
     def __post_init__(self):
         if self.friction != "sticky" and not (isinstance(self.friction, (int, float)) and self.friction >= 0):
             raise ValueError(f"SDFCollider.friction must be a number >= 0 or 'sticky', got {self.friction!r}")
+        if self.adhesion is not None:
+            if self.friction != "sticky":
+                raise ValueError(f"SDFCollider.adhesion applies to a sticky collider only (friction 'sticky'), "
+                                 f"got friction {self.friction!r}")
+            if isinstance(self.adhesion, bool) or not (isinstance(self.adhesion, (int, float))
+                                                       and math.isfinite(self.adhesion) and self.adhesion >= 0):
+                raise ValueError(f"SDFCollider.adhesion must be a tensile strength >= 0 Pa or None, got {self.adhesion!r}")
         if len(self.offsets) and len(self.offsets) != len(self.times):
             raise ValueError(f"SDFCollider: {len(self.times)} times but {len(self.offsets)} offsets")
         if np.any(np.diff(np.asarray(self.times, float)) <= 0):
@@ -249,7 +264,13 @@ class SDFCollider:
         """The collider's SDF at time t (s) at points x (..., d), m."""
         return self.shape(x - self.offset(t, x.shape[-1], x.dtype).reshape((1,) * (x.ndim - 1) + (-1,)))
 
-    def apply(self, v, node_x, t):
+    def _normal(self, rel_x):
+        """Outward unit normal (G, d) = normalized SDF gradient (autodiff of the shape); 0 where flat."""
+        g = jax.vmap(jax.grad(lambda p: self.shape(p[None, :])[0]))(rel_x)
+        gn = _norm(g)
+        return jnp.where(gn[:, None] > 0, g / jnp.where(gn > 0, gn, 1.0)[:, None], 0.0)
+
+    def apply(self, v, node_x, t, mass=None, dt=None, dx=None):
         d = v.shape[-1]
         o = self.offset(t, d, v.dtype)
         vc = self.velocity(t, d, v.dtype)[None, :]
@@ -257,11 +278,16 @@ class SDFCollider:
         phi = self.shape(rel_x)
         inside = phi < self.thickness
         if self.friction == "sticky":
-            return jnp.where(inside[:, None], vc, v)
-        # Outward normal = normalized SDF gradient (autodiff of the shape).
-        g = jax.vmap(jax.grad(lambda p: self.shape(p[None, :])[0]))(rel_x)
-        gn = _norm(g)
-        n = jnp.where(gn[:, None] > 0, g / jnp.where(gn > 0, gn, 1.0)[:, None], 0.0)
+            if self.adhesion is None:
+                return jnp.where(inside[:, None], vc, v)
+            if mass is None or dt is None or dx is None:
+                raise ValueError("SDFCollider.apply: a collider with adhesion needs the grid mass, dt and dx "
+                                 "(mass=, dt=, dx=)")
+            vn = jnp.sum((v - vc) * self._normal(rel_x), -1)
+            pull = mass * vn / (dt * dx ** (d - 1))            # Pa: the tension needed to hold the node
+            hold = inside & (pull <= self.adhesion)
+            return jnp.where(hold[:, None], vc, v)
+        n = self._normal(rel_x)
         vrel = v - vc
         vn = jnp.sum(vrel * n, -1)
         approaching = inside & (vn < 0)
@@ -422,7 +448,7 @@ SHAPE_KEYS = {
     "difference": {"type", "base", "cut"},
     "head_with_nose": {"type", "center", "head_radii", "nose_length", "nose_radius", "facing", "facing_sign"},
 }
-COLLIDER_KEYS = {"shape", "times", "offsets", "friction", "thickness"}
+COLLIDER_KEYS = {"shape", "times", "offsets", "friction", "thickness", "adhesion"}
 
 
 def _tuple(v, field):
@@ -487,7 +513,8 @@ def shape_from_spec(spec: dict, field: str = "shape"):
 
 def collider_from_spec(spec: dict, field: str = "collider") -> SDFCollider:
     """An SDFCollider from {"shape": {...}, "times": [s...], "offsets": [[m...]...],
-    "friction": number >= 0 | "sticky", "thickness": m}. Raises ValueError naming the field."""
+    "friction": number >= 0 | "sticky", "thickness": m, "adhesion": Pa (sticky only)}. Raises ValueError
+    naming the field."""
     if not isinstance(spec, dict) or "shape" not in spec:
         raise ValueError(f"{field}.shape: required")
     unknown = sorted(set(spec) - COLLIDER_KEYS)
@@ -497,6 +524,7 @@ def collider_from_spec(spec: dict, field: str = "collider") -> SDFCollider:
     times = _tuple(spec.get("times", [0.0]), f"{field}.times")
     offsets = tuple(_tuple(o, f"{field}.offsets[{i}]") for i, o in enumerate(spec.get("offsets", [])))
     try:
-        return SDFCollider(shape, times, offsets, spec.get("friction", "sticky"), float(spec.get("thickness", 0.0)))
+        return SDFCollider(shape, times, offsets, spec.get("friction", "sticky"), float(spec.get("thickness", 0.0)),
+                           spec.get("adhesion"))
     except ValueError as exc:
         raise ValueError(f"{field}: {exc}") from exc
