@@ -8,8 +8,7 @@ in 2D and 3D alike (the dimension is the length of its tuples); points are (...,
   `Intersection`, `Difference`. `head_with_nose` builds the analytic face of the pie-throw scene.
 - `SDFCollider` turns a shape with a prescribed rigid translation into a grid boundary condition
   (sticky, sticky up to a tensile `adhesion`, or slip with Coulomb friction) with `apply(v, node_x, t)`;
-  a `Simulator(colliders=...)`
-  applies it after the scene's own plates, floor and walls.
+  a `Simulator(colliders=...)` applies it after the scene's own plates, floor and walls.
 - `material_sdf` computes the signed distance of the region occupied by the particles (the
   morphological closing of the particle set, sampled on a lattice); resampling inserts particles only
   where it is negative.
