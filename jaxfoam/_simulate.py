@@ -109,7 +109,7 @@ def _rollout_impl(state0, params, scene, frame_times, frame_dts, grid, substeps,
             # Cells of a fracturing neck are not refilled (FractureConfig.holds; None when off).
             st = from_components(s)
             hold = None if fracture is None else fracture.holds(st, grid)
-            return to_components(resample.apply(st, grid, n) if hold is None else resample.apply(st, grid, n, hold))
+            return to_components(resample.apply(st, grid, n, hold))
 
         # Within a frame the state is carried in component form (jaxfoam._mpm.to_components).
         def sub(s, i):

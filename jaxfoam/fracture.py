@@ -110,13 +110,12 @@ class FractureConfig:
         """((N,) bool, (N,) bool): points weak by the density ratio, and points in a neck thinner than
         neck_thickness (all False when it is None); grid mass `grid_m` (G,) kg from the p2g of `state`."""
         sparse = weak_points(state, grid_m, grid, self.threshold(state.dim))
-        if self.neck_thickness is None:
-            return sparse, jnp.zeros_like(sparse)
-        return sparse, state.active & (neck_thickness(state, grid, self.neck_thickness) < self.neck_thickness)
+        neck = self.holds(state, grid)
+        return sparse, jnp.zeros_like(sparse) if neck is None else neck
 
     def holds(self, state: State, grid: Grid):
-        """(N,) bool or None: the points whose cells resampling must not refill, those in a neck
-        thinner than neck_thickness (None when it is off). A released neck refilled as it is drawn
+        """(N,) bool or None: the points in a neck thinner than neck_thickness (None when it is off),
+        whose cells resampling must not refill. A released neck refilled as it is drawn
         out keeps the two pieces joined by a thread that carries no load, so the pieces never
         separate geometrically (measured in experiments/results/fracture_demo.md). The density-ratio
         criterion holds nothing: it is relative to the grid, and resampling exists to refill exactly

@@ -439,22 +439,16 @@ def resample(state: State, grid: Grid, config: ResampleConfig, key, hold=None) -
     """One resampling pass: merge too-close points, then refill sparse cells inside the material.
 
     key: a jax.random key for the candidate jitter; hold: optional (N,) bool, points whose cells are
-    not refilled (see `insert`). Pure and jit-compatible (fixed shapes).
+    not refilled (see `insert`; slots that merging deactivates hold nothing). Pure and jit-compatible
+    (fixed shapes).
     """
-    state, _ = merge(state, grid, config.merge_radius * config.spacing(grid.dx, state.dim),
-                     config.merge_rounds, config.merge_cell_capacity)
-    if hold is not None:
-        hold = hold & state.active  # merging leaves slot indices in place and deactivates absorbed points
-    state, _, _ = insert(state, grid, config, key, hold)
-    return state
+    return resample_with_stats(state, grid, config, key, hold)[0]
 
 
 def resample_with_stats(state: State, grid: Grid, config: ResampleConfig, key, hold=None):
     """`resample` that also returns a dict: merged (points removed), inserted, and the material sdf."""
     state, merged = merge(state, grid, config.merge_radius * config.spacing(grid.dx, state.dim),
                           config.merge_rounds, config.merge_cell_capacity)
-    if hold is not None:
-        hold = hold & state.active
     state, inserted, sdf = insert(state, grid, config, key, hold)
     return state, dict(merged=merged, inserted=inserted, sdf=sdf)
 
