@@ -111,6 +111,24 @@ def test_resumed_fit_equals_uninterrupted_fit(slump, tmp_path):
                                                       starts=1, max_iter=8), log=log, resume=True)
 
 
+def test_log_from_before_a_new_setting_resumes_only_at_its_default():
+    """A fit log written before a setting existed (here: without `resample` and `fracture`) belongs to
+    a fit that leaves the new setting at its default (the old behaviour), and to no other; any other
+    difference (data, an existing setting, dx) still refuses the log."""
+    from jaxfoam.calibrate import _path_settings, _same_fit
+
+    current = dict(data="abc", settings=_path_settings(FitSettings(dx=0.01, starts=1)), dx=0.01)
+    old = json.loads(json.dumps(current))
+    del old["settings"]["resample"], old["settings"]["fracture"]
+    assert _same_fit(old, current)
+    assert _same_fit(current, current)
+    with_fracture = dict(current, settings=_path_settings(FitSettings(dx=0.01, starts=1, fracture=True)))
+    assert not _same_fit(old, with_fracture)
+    assert not _same_fit(dict(old, data="abd"), current)
+    assert not _same_fit(dict(old, dx=0.02), current)
+    assert not _same_fit(dict(old, settings=dict(old["settings"], starts=2)), current)
+
+
 def test_cli_option_parsing_and_settings_errors():
     assert parse_fixed("kappa=2500, m=0.5,density=90") == {"kappa": 2500.0, "m": 0.5, "rho": 90.0}
     assert parse_bounds("mu=20:800,m=0.3:1.2") == {"mu": (20.0, 800.0), "m": (0.3, 1.2)}
