@@ -15,7 +15,8 @@ sigma_y 15-80 Pa, eta 1-30 Pa s^m log-uniform, m 0.3-1.0 uniform):
    the plastic shear-rate range the truth produces (eta and m separate only over a wide range).
 
 The three optimizers (Levenberg-Marquardt, L-BFGS, Adam) are compared on the same data (loss against
-wall time). Goals (issue 4): mu and sigma_y within 10%, m within 0.1, eta within 25% (or reported
+wall time). The full study also refits the drop at dx_fit / sqrt(2) against data made at half that
+(FINE), to see whether a finer fit grid brings the parameters closer to the truth. Goals (issue 4): mu and sigma_y within 10%, m within 0.1, eta within 25% (or reported
 not identifiable with an interval containing the truth); truth inside the interval in >= 90% of cases;
 a 2D fit under 15 minutes on 2 CPU cores.
 
