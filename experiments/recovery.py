@@ -113,8 +113,9 @@ times fell from 2.7-33 min (earlier runs, measured while other studies shared th
 0.3-3.7 min per start; a 3-start 2D LM fit takes 1.4-7.9 min (goal < 15 min). The refits reproduced
 the earlier fits' losses to all printed digits where the starting guess was the same, except squeeze set
 0 (mu 411 -> 409 Pa) and the hanging plate's set 2, whose tear-off at another time than in the data
-makes the loss chaotic (LM's first start 0.041 -> 0.042, L-BFGS 0.061 -> 0.075): the rollouts' round-off changed with the forward-speed
-work since. The intervals use the discretization check's safety factor 3 (Roache's two-grid value; it
+makes the loss chaotic (LM's first start 0.041 -> 0.042, L-BFGS 0.061 -> 0.075). A Jacobian evaluated three
+times in one process is bit-identical, so the difference most likely comes from code changed since those
+fits (the forward-speed work on the return map and the grid update changed the round-off; not verified). The intervals use the discretization check's safety factor 3 (Roache's two-grid value; it
 was 1.25): with the earlier fits, coverage went from 42/48 to 46/48 and the parameters reported
 identifiable from 12 to 3 of 48.
 
