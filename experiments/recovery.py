@@ -275,8 +275,14 @@ def truth_loss(c: SceneCase, k: int, quick: bool) -> float:
     return loss
 
 
+def case_of(r: dict) -> SceneCase:
+    """The SceneCase of a finished record (quick records from QUICK, the others from FULL or FINE)."""
+    cases = QUICK if r["case"].startswith("q_") else FULL + FINE
+    return next(c for c in cases if c.name == r["scene"] and c.dx_fit == r["dx_fit"])
+
+
 def _truth_loss_of(r: dict) -> float:
-    c = next(c for c in (QUICK + FULL + FINE) if c.name == r["scene"] and c.dx_fit == r["dx_fit"])
+    c = case_of(r)
     try:
         return truth_loss(c, r["set"], r["case"].startswith("q_"))
     except Exception:  # the table must not fail over a diagnostic
@@ -414,7 +420,7 @@ def load_records(quick: bool) -> list[dict]:
 
 
 def _fmt_shear(r: dict) -> str:
-    c = next(c for c in (QUICK + FULL + FINE) if c.name == r["scene"] and c.dx_fit == r["dx_fit"])
+    c = case_of(r)
     try:
         sh = shear_rates(c, r["set"], r["case"].startswith("q_"))
     except Exception as exc:  # the table must not fail over a diagnostic
@@ -554,7 +560,7 @@ def report(quick: bool, n_sets: int | None = None) -> None:
             srows.append(row)
         body.append(C.md_table(["scene", "fits"] + [f"{n}: identifiable, median err" for n in names], srows))
     if fine:
-        body.append("\n## Finer fit grid (LM, 3 starts)\n\n"
+        body.append(f"\n## Finer fit grid (LM, {DEFAULT_STARTS} starts)\n\n"
                     "The same truths, noise and budget, fitted at dx_fit / sqrt(2) to data made at half that "
                     "(FINE); beside each, the same set at the study's dx_fit.\n\n")
         frows = []

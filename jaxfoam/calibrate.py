@@ -104,7 +104,7 @@ DX_CHECK_ORDER = 1.0
 # Safety factor on the extrapolated numerical error: Roache's grid convergence index takes 3 for a
 # two-grid estimate whose order is assumed, 1.25 only when three or more grids measure the order. The
 # check uses two grids and an assumed order, so 3. (Until 2026-11-23 this was 1.25: in the recovery
-# study the truth then lay outside 7 of 48 reported intervals, among them a hanging-plate mu whose
+# study the truth then lay outside 6 of 48 reported intervals, among them a hanging-plate mu whose
 # actual error, 34 Pa, equalled its estimated numerical error; experiments/results/recovery.md.)
 GCI_SAFETY = 3.0
 # A parameter whose reported interval covers at least this fraction of its bounds is not identifiable:
