@@ -156,9 +156,9 @@ not a coarse grid that fits the data with wrong parameters: the squeeze fits rep
 - sigma_y: not identifiable in any 2D LM fit at this grid once the numerical error is counted; the
   hanging plate set 1 (the foam tears off) gives -3%, the squeeze's permanent set -33%, -51%, -27%, the
   drop (15-27% of particle-frames yield, during the impact) -59% to -95%, and a hanging slab that holds
-  (set 0: sigma_y = 49 Pa against rho g L = 51 Pa; 15% of particle-frames yield, at 0.005-0.6 1/s) -79%.
-- eta and m: not separated by any scene. The yielding particle-frames see plastic rates of 0.005-0.6
-  1/s (hanging, set 0), 0.1-2.6 1/s (hanging, set 1), 0.02-3.7 1/s (squeeze) and 0.01-33 1/s only
+  (set 0: sigma_y = 49 Pa against rho g L = 51 Pa; 14% of particle-frames yield, at 0.004-0.5 1/s) -79%.
+- eta and m: not separated by any scene. The yielding particle-frames see plastic rates of 0.004-0.5
+  1/s (hanging, set 0), 0.1-3.1 1/s (hanging, set 1), 0.03-5.6 1/s (squeeze) and 0.01-33 1/s only
   during the drop's impact; eta gamma_dot^m is then either small against sigma_y or seen too briefly,
   and eta and m trade off (|correlation| >= 0.98 in every fit with a finite correlation; the notes name
   the direction).
