@@ -211,10 +211,19 @@ def _return_map_with_rate(bbar_e, f, params, dt):
     return T.array(bc, bbar_e[..., 0, 0]), s_new, gamma
 
 
+def _inv_cbrt(x):
+    """x^(-1/3) for x > 0 (NaN for x < 0, as the power is), as exp(-ln(x) / 3).
+
+    XLA:CPU lowers a power with a float exponent to a general pow that costs 11 ns per element in
+    float32 (18 in float64) against 1.9 (6.2) for this exp and log: the two cube roots of the
+    return map were about 9% of a 2D float32 substep's CPU time."""
+    return jnp.exp(jnp.log(x) * (-1.0 / 3.0))
+
+
 def _return_map_components(bc, f3, params, dt):
     """Return map on components: bbar_e (3x3) and f embedded as 3x3 -> (bbar_new, s_new, gamma)."""
     detf = T.det(f3)
-    fbar = T.scale(f3, detf ** (-1.0 / 3.0))
+    fbar = T.scale(f3, _inv_cbrt(detf))
     bpre = T.matmul(T.matmul(fbar, bc), T.transpose(fbar))
     tr3 = T.trace(bpre) / 3.0
     dev_pre = T.add_diag(bpre, -tr3)
@@ -237,7 +246,7 @@ def _return_map_components(bc, f3, params, dt):
     # leaks into reverse-mode gradients through the where below.
     ratio = jnp.where(yielding, s_new / jnp.where(yielding, s_pre, 1.0), 1.0)
     b_ret = T.add_diag(T.scale(dev_pre, ratio), tr3)
-    b_ret = T.scale(b_ret, T.det(b_ret) ** (-1.0 / 3.0))  # renormalize to det 1 (eq. 16)
+    b_ret = T.scale(b_ret, _inv_cbrt(T.det(b_ret)))  # renormalize to det 1 (eq. 16)
     bbar_new = tuple(tuple(jnp.where(yielding, r, p) for r, p in zip(rr, rp)) for rr, rp in zip(b_ret, bpre))
     sq_new = T.frob_sq(T.dev(bbar_new))
     pos_new = sq_new > 0
