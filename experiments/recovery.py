@@ -82,9 +82,10 @@ QUICK = [SceneCase("hanging_plate_2d", 0.01, 0.6, 8), SceneCase("drop_2d", 0.01,
 # same truths, noise and budget: does a finer fit grid bring the fitted parameters closer to the truth?
 FINE = [SceneCase("drop_2d", 0.01 / math.sqrt(2.0), 0.4, 12)]
 # Floor-friction probe of the full study: the drop on a frictionless floor (scene drop_2d_frictionless, else
-# identical), at the study's dx_fit, LM only, the same truths, noise and budget. The floor's Coulomb
-# friction acts on the grid's bottom node row, so on a layer about a cell thick: experiments/floor_contact
-# measures how much less the foam spreads on the 1 cm grid than on finer ones. Does the drop's bias go with it?
+# identical), at the study's dx_fit, LM only, the same truths, noise and budget. On the scene's floor the
+# landed foam's base sticks and the foam spreads by shearing above it, a layer a few cells thick on the fit
+# grid: experiments/floor_contact measures how much less the foam spreads on the 1 cm grid than on finer
+# ones. Does the drop's bias go with the friction?
 SLIP = [SceneCase("drop_2d_frictionless", 0.01, 0.4, 12)]
 PROBES = FINE + SLIP
 # Budgets: starts and iterations per optimizer; the optimizer comparison runs on the same data. The full
@@ -180,19 +181,22 @@ not a coarse grid that fits the data with wrong parameters: the squeeze fits rep
 - A finer fit grid alone did not close the gap on the drop (section "Finer fit grid"): fitted at
   7.07 mm to data made at 3.54 mm (3 starts, 3.0-5.7 min), mu is off by -35%, -30% and +275% (1 cm:
   -20%, -37%, -64%), and the loss at the truth is still 2.2-4.9x the fitted loss.
-- The drop's floor friction causes most of its bias (section "Frictionless floor"). The floor's
-  Coulomb friction acts on the grid's bottom node row, which reaches particles up to 1.5 cells above
-  the floor: on the 1 cm grid the landed foam of sets 0 and 1 ends 12-13 mm narrower and its centroid
+- The drop's floor friction causes most of its bias (section "Frictionless floor"). The impact sticks
+  the foam's base to the floor (Coulomb friction 0.5: the blob moves 0.3 m/s sideways and lands at
+  over 1 m/s, so the friction impulse exceeds its sideways momentum) and the foam then spreads by
+  shearing above it: on the 1 cm grid the landed foam of sets 0
+  and 1 ends 12-13 mm narrower and its centroid
   7 mm higher than at 2.5 mm (`experiments/results/floor_contact.md`), and its silhouettes lie 1.8-1.9
   mm from the 2.5 mm run's on average, against 1.0-1.3 mm on a frictionless floor. The same truths,
   noise and budget on a frictionless floor give mu -6%, -5% and sigma_y -3%, +8% for sets 0 and 1 (with
   friction: mu -20%, -37%, sigma_y -65%, -59%), both parameters identifiable in set 1, and a loss at
   the truth only 1.3-1.7x the fitted loss (3.0-4.3x with friction); the weak foam of set 2 stays off
   (mu -43%, outside its interval). A fit of a drop on a rough floor therefore needs a grid that resolves
-  the sheared layer above the floor, or a contact model that does not smear the friction over a cell;
-  neither is in jaxfoam yet. (A scratch probe with the grid shifted half a cell, so that the floor lies
-  midway between node rows and the foam rests on it, halved the drop's fitted losses but left mu at
-  -24%, -34%, -8%: the resting offset is not what biases mu.)
+  the sheared layer above the floor. (Scratch probes with the grid shifted half a cell, so that the floor
+  lies midway between node rows, the foam rests on it and the friction's node row reaches only the
+  lowest particles: the widths converged no better, set 0's right edge at 0.4 s at 61, 73, 77 mm for dx
+  10, 5, 2.5 mm against 60, 73, 76 mm unshifted, so the friction row's reach is not the cause; and fits
+  of data made that way halved the drop's fitted losses but left mu at -24%, -34%, -8%.)
 """
 
 
