@@ -184,9 +184,8 @@ not a coarse grid that fits the data with wrong parameters: the squeeze fits rep
 - The drop's floor friction causes most of its bias (section "Frictionless floor"). The impact sticks
   the foam's base to the floor (Coulomb friction 0.5: the blob moves 0.3 m/s sideways and lands at
   over 1 m/s, so the friction impulse exceeds its sideways momentum) and the foam then spreads by
-  shearing above it: on the 1 cm grid the landed foam of sets 0
-  and 1 ends 12-13 mm narrower and its centroid
-  7 mm higher than at 2.5 mm (`experiments/results/floor_contact.md`), and its silhouettes lie 1.8-1.9
+  shearing above it: on the 1 cm grid the landed foam of sets 0 and 1 ends 12-13 mm narrower and
+  its centroid 7 mm higher than at 2.5 mm (`experiments/results/floor_contact.md`), and its silhouettes lie 1.8-1.9
   mm from the 2.5 mm run's on average, against 1.0-1.3 mm on a frictionless floor. The same truths,
   noise and budget on a frictionless floor give mu -6%, -5% and sigma_y -3%, +8% for sets 0 and 1 (with
   friction: mu -20%, -37%, sigma_y -65%, -59%), both parameters identifiable in set 1, and a loss at
