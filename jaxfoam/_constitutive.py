@@ -226,30 +226,15 @@ def _return_map_with_rate(bbar_e, f, params, dt):
     return T.array(bc, bbar_e[..., 0, 0]), s_new, gamma
 
 
-@jax.custom_jvp
 def _inv_cbrt(x):
-    """x^(-1/3) for x > 0 (NaN for x < 0, as the power is).
+    """x^(-1/3) for x > 0 (NaN for x < 0 and inf at 0, as the power), as exp(-ln(x) / 3).
 
     XLA:CPU lowers a power with a float exponent to a general pow that costs 11 ns per element in
-    float32 (18 in float64); the two cube roots of the return map were about 9% of a 2D float32
-    substep's CPU time. Here: exp(-ln(x) / 3) (1.9 ns in float32); in float64 that estimate is formed
-    in float32 and refined by one third-order step, y (1 - d)^(-1/3) ~ y (1 + d/3 + 2 d^2 / 9) with
-    d = 1 - x y^3 (the float32 estimate has |d| ~ 1e-7, so the dropped d^3 term is below round-off),
-    instead of float64 exp and log (6.2 ns + the log's 8.7)."""
-    if x.dtype != jnp.float64:
-        return jnp.exp(jnp.log(x) * (-1.0 / 3.0))
-    x32 = x.astype(jnp.float32)
-    y = jnp.exp(jnp.log(x32) * (-1.0 / 3.0)).astype(x.dtype)
-    d = 1.0 - x * (y * y * y)
-    return y * (1.0 + d * (1.0 / 3.0 + d * (2.0 / 9.0)))
-
-
-@_inv_cbrt.defjvp
-def _inv_cbrt_jvp(primals, tangents):
-    """d(x^(-1/3)) = -x^(-1/3) dx / (3 x), from the value (the estimate's own derivative is not used)."""
-    (x,), (dx,) = primals, tangents
-    y = _inv_cbrt(x)
-    return y, -y * dx / (3.0 * x)
+    float32 (18 in float64) against 1.9 (6.2) for this exp and log: the two cube roots of the return
+    map were about 9% of a 2D float32 substep's CPU time. (A float32 estimate refined in float64 was
+    faster only while it ignored that extreme strains give determinants outside float32's range; with
+    the exponent split off to stay in range it was slower than this.)"""
+    return jnp.exp(jnp.log(x) * (-1.0 / 3.0))
 
 
 def _return_map_components(bc, f3, params, dt):

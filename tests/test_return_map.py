@@ -328,15 +328,17 @@ def test_scalar_and_batched_agree():
 
 
 def test_inverse_cube_root_matches_the_power_to_round_off_and_has_its_derivative():
-    """The return map's x^(-1/3) (isochoric part of f, renormalization to det 1; eq. 12, 16; a float32
-    estimate refined by one third-order step in float64): within 8 ulp of numpy's power over det values
-    from 1e-6 to 1e6 in float64, and its derivative -x^(-4/3) / 3 against a central difference to 1e-8
-    relative."""
-    x = np.geomspace(1e-6, 1e6, 2001)
+    """The return map's x^(-1/3) (isochoric part of f, renormalization to det 1; eq. 12, 16), computed as
+    exp(-ln(x) / 3): over det values from 1e-300 to 1e300 in float64 (extreme strains give determinants
+    far from 1) within 2 (1 + |ln x| / 3) ulp of numpy's 1 / cbrt (exp amplifies the rounding of its
+    argument -ln(x) / 3), and its derivative -x^(-4/3) / 3 against the analytic one and a central
+    difference to 1e-8 relative."""
+    x = np.geomspace(1e-300, 1e300, 6001)
     y = np.asarray(constitutive._inv_cbrt(jnp.asarray(x)))
-    ref = x ** (-1.0 / 3.0)
-    # measured 2.2 ulp at most (exp(-ln(x) / 3) in float64, the former form, reached 3.6).
-    assert np.max(np.abs(y - ref) / (EPS * ref)) <= 8.0
+    ref = 1.0 / np.cbrt(x)  # within 1.5 ulp (x ** (-1/3) is itself off by up to ~60 ulp here)
+    ulp = np.abs(y - ref) / (EPS * ref)
+    # measured: at most 0.98 (1 + |ln x| / 3) ulp, 5.3 ulp on 1e-6..1e6.
+    assert np.max(ulp / (1.0 + np.abs(np.log(x)) / 3.0)) <= 2.0
     x0 = np.array([0.5, 0.97, 1.0, 1.03, 2.0])
     g = np.asarray(jax.vmap(jax.grad(constitutive._inv_cbrt))(jnp.asarray(x0)))
     h = 1e-6 * x0
@@ -344,3 +346,12 @@ def test_inverse_cube_root_matches_the_power_to_round_off_and_has_its_derivative
           np.asarray(constitutive._inv_cbrt(jnp.asarray(x0 - h)))) / (2 * h)
     np.testing.assert_allclose(g, -x0 ** (-4.0 / 3.0) / 3.0, rtol=1e-12)
     np.testing.assert_allclose(g, fd, rtol=1e-8)
+
+
+def test_return_map_renormalizes_to_det_one_at_extreme_strain():
+    """Eq. 16 at shear strains of 1e8 and 1e12 in one step: bbar_new has det 1 to round-off (the
+    renormalization's cube root of a determinant far outside float32's range stays exact)."""
+    params = Params(mu=MU, kappa=KAPPA, sigma_y=20.0, eta=5.0, m=0.5, rho=RHO)
+    for g in (1e8, 1e12):
+        bnew, s_new = return_map(jnp.eye(3), jnp.array([[1.0, g], [0.0, 1.0]]), params, 1e-3)
+        assert abs(float(jnp.linalg.det(bnew)) - 1.0) <= 1e-12 and np.isfinite(float(s_new))
