@@ -7,8 +7,9 @@ what differs between the two grids once the foam has landed:
 - the lowest particle at rest above the floor (y = 0), in mm and in grid cells: the floor acts on the
   grid's node rows, and with a node row on the floor the foam rests a fixed fraction of a cell above it;
 - the height of the top, the width and the centroid height of the foam at the end (0.4 s);
-- the mean distance between the silhouette at each frame and the finest run's (2.5 mm), mm (area of
-  the symmetric difference over the mean perimeter, rasters of disks of 0.75 particle spacings);
+- the mean distance between the silhouette at each frame and the finest run's (2.5 mm), mm: the
+  fitter's goodness-of-fit measure (`jaxfoam.calibrate.silhouette_mismatch`: area of the symmetric
+  difference over the finest run's perimeter) on rasters of disks of 0.75 particle spacings;
 - the same with a frictionless floor (friction 0), to separate the floor's friction from the rest.
 
 Usage: python -m experiments floor_contact [--quick]   (quick: set 0 only, friction 0.5 only)
@@ -24,6 +25,7 @@ import numpy as np
 import jaxfoam
 from experiments import _common as C
 from experiments.recovery import SCENES, truth_sets
+from jaxfoam.calibrate import silhouette_mismatch
 
 SCENE = "drop_2d"
 DURATION = 0.4  # s, the recovery study's drop duration
@@ -55,14 +57,6 @@ def run(truth: dict, friction: float, dx: float) -> dict:
                 cy=float(end[:, 1].mean()))
 
 
-def boundary_distance(a, b) -> float:
-    """Mean distance between the boundaries of two rasters, m: symmetric difference / mean perimeter."""
-    def perimeter(img):
-        return (np.sum(img[1:] != img[:-1]) + np.sum(img[:, 1:] != img[:, :-1])) * PIXEL
-    per = 0.5 * (perimeter(a) + perimeter(b))
-    return float(np.sum(a != b) * PIXEL ** 2 / per) if per > 0 else 0.0
-
-
 def main(argv=None):
     args = C.parse_args(__doc__, argv)
     sets = [0] if args.quick else [0, 1, 2]
@@ -74,7 +68,9 @@ def main(argv=None):
             runs = [run(truths[k], fr, dx) for dx in DXS]
             ref = runs[-1]
             for r in runs:
-                d = [boundary_distance(a, b) for a, b in zip(r["rasters"], ref["rasters"])]
+                # the fitter's goodness-of-fit measure, with the finest run as the observation
+                d = silhouette_mismatch(np.stack(r["rasters"]).astype(float), np.stack(ref["rasters"]).astype(float),
+                                        np.ones((FRAMES,) + ref["rasters"][0].shape), PIXEL)[1]
                 rows.append([k, fr, r["dx"] * 1e3, r["ymin"] * 1e3, r["ymin"] / r["dx"], r["ymax"] * 1e3,
                              r["width"] * 1e3, r["xmax"] * 1e3, r["cy"] * 1e3, r["wall"]])
                 if r is not ref:

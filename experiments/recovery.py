@@ -185,8 +185,8 @@ not a coarse grid that fits the data with wrong parameters: the squeeze fits rep
   the foam's base to the floor (Coulomb friction 0.5: the blob moves 0.3 m/s sideways and lands at
   over 1 m/s, so the friction impulse exceeds its sideways momentum) and the foam then spreads by
   shearing above it: on the 1 cm grid the landed foam of sets 0 and 1 ends 12-13 mm narrower and
-  its centroid 7 mm higher than at 2.5 mm (`experiments/results/floor_contact.md`), and its silhouettes lie 1.8-1.9
-  mm from the 2.5 mm run's on average, against 1.0-1.3 mm on a frictionless floor. The same truths,
+  its centroid 7 mm higher than at 2.5 mm (`experiments/results/floor_contact.md`), and its silhouettes lie 1.9-2.0
+  mm from the 2.5 mm run's on average, against 1.1-1.3 mm on a frictionless floor. The same truths,
   noise and budget on a frictionless floor give mu -6%, -5% and sigma_y -3%, +8% for sets 0 and 1 (with
   friction: mu -20%, -37%, sigma_y -65%, -59%), both parameters identifiable in set 1, and a loss at
   the truth only 1.3-1.7x the fitted loss (3.0-4.3x with friction); the weak foam of set 2 stays off
@@ -456,6 +456,21 @@ def _fmt_err(e: dict) -> str:
     return s + flags
 
 
+def _probe_table(probe: list[dict], lm: list[dict], names, base_scene) -> str:
+    """A probe's fits (FINE, SLIP), each after the study's LM fit of the same set on `base_scene(record)`:
+    grids, errors, loss, loss at the truth, goodness of fit, wall time."""
+    rows = []
+    for r in sorted(probe, key=lambda r: (r["scene"], r["set"])):
+        base = next((b for b in lm if b["scene"] == base_scene(r) and b["set"] == r["set"]), None)
+        for x in ([base] if base else []) + [r]:
+            rows.append([x["scene"], x["set"], f"{x['dx_fit'] * 1e3:.2f}", f"{x['dx_data'] * 1e3:.2f}"]
+                        + [_fmt_err(x["evaluation"][n]) for n in names]
+                        + [f"{x['fit']['loss']:.3g}", f"{_truth_loss_of(x):.3g}", _fmt_gof(x),
+                           f"{x['fit']['wall_time'] / 60:.1f}"])
+    return C.md_table(["scene", "set", "fit dx (mm)", "data dx (mm)"] + [f"err {n}" for n in names]
+                      + ["loss", "loss at truth", "min IoU; max boundary (spacings)", "wall min"], rows)
+
+
 def report(quick: bool, n_sets: int | None = None) -> None:
     import matplotlib
 
@@ -586,30 +601,13 @@ def report(quick: bool, n_sets: int | None = None) -> None:
         body.append(f"\n## Finer fit grid (LM, {DEFAULT_STARTS} starts)\n\n"
                     "The same truths, noise and budget, fitted at dx_fit / sqrt(2) to data made at half that "
                     "(FINE); beside each, the same set at the study's dx_fit.\n\n")
-        frows = []
-        for r in sorted(fine, key=lambda r: (r["scene"], r["set"])):
-            base = next((b for b in lm if b["scene"] == r["scene"] and b["set"] == r["set"]), None)
-            for x in ([base] if base else []) + [r]:
-                frows.append([x["scene"], x["set"], f"{x['dx_fit'] * 1e3:.2f}", f"{x['dx_data'] * 1e3:.2f}"]
-                             + [_fmt_err(x["evaluation"][n]) for n in names]
-                             + [f"{x['fit']['loss']:.3g}", f"{_truth_loss_of(x):.3g}", _fmt_gof(x),
-                                f"{x['fit']['wall_time'] / 60:.1f}"])
-        body.append(C.md_table(["scene", "set", "fit dx (mm)", "data dx (mm)"] + [f"err {n}" for n in names]
-                               + ["loss", "loss at truth", "min IoU; max boundary (spacings)", "wall min"], frows))
+        body.append(_probe_table(fine, lm, names, base_scene=lambda r: r["scene"]))
     if slip:
         body.append(f"\n## Frictionless floor (drop, LM, {DEFAULT_STARTS} starts)\n\n"
                     "The drop's truths, noise and budget on the same scene with floor friction 0 (data made on "
                     "that scene); beside each, the same set on the scene's floor (friction 0.5). "
                     "`experiments/results/floor_contact.md` measures the two floors across grid spacings.\n\n")
-        srows = []
-        for r in sorted(slip, key=lambda r: r["set"]):
-            base = next((b for b in lm if b["scene"] == "drop_2d" and b["set"] == r["set"]), None)
-            for x in ([base] if base else []) + [r]:
-                srows.append([x["scene"], x["set"]] + [_fmt_err(x["evaluation"][n]) for n in names]
-                             + [f"{x['fit']['loss']:.3g}", f"{_truth_loss_of(x):.3g}", _fmt_gof(x),
-                                f"{x['fit']['wall_time'] / 60:.1f}"])
-        body.append(C.md_table(["scene", "set"] + [f"err {n}" for n in names]
-                               + ["loss", "loss at truth", "min IoU; max boundary (spacings)", "wall min"], srows))
+        body.append(_probe_table(slip, lm, names, base_scene=lambda r: "drop_2d"))
     if not quick and VERDICT:
         body.append("\n## Verdict\n\n" + VERDICT.strip() + "\n")
 
