@@ -17,6 +17,7 @@ import numpy as np
 
 from . import _tensor as T
 from ._constitutive import _kirchhoff, _return_map_components
+from ._fusion import hoist, materialize_tangent
 from ._params import Params
 from ._scene import Scene
 from ._state import State
@@ -24,8 +25,6 @@ from ._state import State
 # Grid nodes beyond the domain on each side: the quadratic stencil reaches 1.5 cells past a
 # particle, and the slip walls live on the domain boundary, so 3 cells keep every index in range.
 GRID_PAD = 3
-
-
 @dataclasses.dataclass(frozen=True)
 class Grid:
     """Static background grid. origin (d,) m is node (0, ..., 0); dx m; shape nodes per axis."""
@@ -197,6 +196,9 @@ def p2g(state: State, params: Params, grid: Grid, dt) -> tuple[jax.Array, jax.Ar
     vals = jnp.stack(cols + [W * mass[None]], axis=-1).reshape(-1, d + 1)
     idx = jnp.concatenate([_flat_index(base, off, grid) for off in offs])
     grid_mv = jnp.zeros((grid.num_nodes, d + 1), x.dtype).at[idx].add(vals, mode="promise_in_bounds")
+    # Reverse mode: the grid cotangent is materialized before the gather that transposes this
+    # scatter (jaxfoam._fusion), and the grid is kept per substep by the rematerialization policy.
+    grid_mv = checkpoint_name(materialize_tangent(grid_mv, dt), "p2g_grid")
     return grid_mv[:, :d], grid_mv[:, d]
 
 
@@ -215,8 +217,8 @@ def apply_colliders(v, node_x, scene: Scene, t, colliders=(), grid_m=None, dt=No
     """
     d = v.shape[-1]
     for plate in scene.plates:
-        c = plate.position(t)
-        vp = plate.velocity(t)
+        # Computed once, not per grid node (jaxfoam._fusion).
+        c, vp = hoist((plate.position(t), plate.velocity(t)), t)
         rel = node_x - c[None, :]
         inside = jnp.all(jnp.abs(rel) <= plate.half_size[None, :], axis=-1)
         if plate.sticky:
@@ -268,6 +270,8 @@ def grid_update(grid_mv, grid_m, scene: Scene, grid: Grid, t, dt, colliders=()) 
     """Grid velocities (G, d) m/s at the end of the substep: momentum / mass, gravity, colliders."""
     v = safe_div(grid_mv, grid_m[:, None])
     v = v + jnp.where(grid_m[:, None] > 0, dt * scene.gravity.astype(v.dtype)[None, :], 0.0)
+    # Reverse mode: the colliders' transpose is computed once into a buffer (jaxfoam._fusion).
+    v = materialize_tangent(v, dt)
     return apply_colliders(v, grid.node_positions(v.dtype), scene, t + dt, colliders, grid_m, dt, grid.dx)
 
 

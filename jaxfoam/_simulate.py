@@ -24,13 +24,11 @@ SPEED_SAFETY = 1.5
 STATE_FIELDS = ("x", "v", "C", "F", "bbar_e")
 # Reverse mode: every substep is a `jax.checkpoint` whose backward pass recomputes the substep from
 # its input state, except for these named values, which the frame's recomputation stores per substep:
-# the plastic rate of the return map ("hb_gamma", jaxfoam._constitutive) and the g2p velocity and
-# velocity gradient ("g2p", jaxfoam._mpm), so the solve and the gather are not redone there. The
-# remaining recomputation is elementwise work that XLA fuses into the transpose's kernels. Measured
-# on the 2D hanging plate (same-process A/B, CPU time / forward): dx 5 mm 5.9x -> 4.7x, dx 2.5 mm
-# 5.9-6.3x -> 4.9-5.3x, against the former blocks of 4 substeps whose ~230 stored residual arrays
-# per substep were written to and read back from memory (docs/gradients.md).
-REMAT_SAVED = ("hb_gamma", "g2p")
+# the plastic rate of the return map ("hb_gamma", jaxfoam._constitutive), the g2p velocity and
+# velocity gradient ("g2p") and the p2g grid momentum and mass ("p2g_grid", jaxfoam._mpm), so the
+# solve, the gather and the scatter are not redone there. The remaining recomputation is elementwise
+# work that XLA fuses into the transpose's kernels. docs/gradients.md has the measurements.
+REMAT_SAVED = ("hb_gamma", "g2p", "p2g_grid")
 # Reorder the particles by grid cell at the start of every frame (and restore the order at its end,
 # so particle i stays particle i in every output): scatter and gather then touch neighbouring memory;
 # +17% (2D) / +26% (3D) particle-steps/s on randomly ordered particles, for one argsort per frame.

@@ -23,6 +23,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._fusion import hoist
+
 
 def _norm(v, axis=-1):
     """Euclidean norm with a finite gradient at 0 (double where)."""
@@ -272,8 +274,9 @@ class SDFCollider:
 
     def apply(self, v, node_x, t, mass=None, dt=None, dx=None):
         d = v.shape[-1]
-        o = self.offset(t, d, v.dtype)
-        vc = self.velocity(t, d, v.dtype)[None, :]
+        # Computed once, not per grid node (jaxfoam._fusion).
+        o, vc = hoist((self.offset(t, d, v.dtype), self.velocity(t, d, v.dtype)), t)
+        vc = vc[None, :]
         rel_x = node_x - o[None, :]
         phi = self.shape(rel_x)
         inside = phi < self.thickness
