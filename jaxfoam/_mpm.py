@@ -115,17 +115,42 @@ def _flat_index(base, offset, grid: Grid):
     return idx
 
 
+def _bbar_pack(b, d):
+    """The independent components of a symmetric bbar_e given as 3x3 components: the upper
+    triangle (6 arrays) in 3D; in 2D plane strain (xz = yz = 0 exactly) xx, xy, yy, zz."""
+    if d == 2:
+        return (b[0][0], b[0][1], b[1][1], b[2][2])
+    return (b[0][0], b[0][1], b[0][2], b[1][1], b[1][2], b[2][2])
+
+
+def _bbar_comps(b):
+    """3x3 components of bbar_e from an (N, 3, 3) array or from `_bbar_pack`'s tuple (the plane-strain
+    zeros as constants, which the component algebra folds away)."""
+    if not isinstance(b, tuple):
+        return T.comps(b)
+    if len(b) == 4:
+        xx, xy, yy, zz = b
+        return ((xx, xy, 0.0), (xy, yy, 0.0), (0.0, 0.0, zz))
+    xx, xy, xz, yy, yz, zz = b
+    return ((xx, xy, xz), (xy, yy, yz), (xz, yz, zz))
+
+
 def to_components(state: State) -> State:
-    """The substep's working form: C, F and bbar_e as tuples of rows of (N,) component arrays.
+    """The substep's working form: C and F as tuples of rows of (N,) component arrays, bbar_e as the
+    tuple of its independent components (symmetric; in 2D plane strain xx, xy, yy, zz only).
 
     Inside a rollout the state stays in this form from one substep to the next (structure of arrays).
     Packing the components into (N, d, d) arrays every substep made XLA:CPU evaluate the shared
     per-particle expressions once per matrix entry, in the forward step and far worse in its
     transpose: the reverse-mode constitutive update ran at 10x its forward time packed, 1.6x unpacked.
+    Keeping only bbar_e's independent components, with the plane-strain zeros as constants that the
+    component algebra folds away, made the 2D step 1.11-1.13x faster (3D 1.01x) and reverse mode
+    1.17x faster; the 2D results are bit for bit the same (the lower triangle equalled the upper).
     """
     if isinstance(state.F, tuple):
         return state
-    return state.replace(C=T.comps(state.C), F=T.comps(state.F), bbar_e=T.comps(state.bbar_e))
+    return state.replace(C=T.comps(state.C), F=T.comps(state.F),
+                         bbar_e=_bbar_pack(T.comps(state.bbar_e), state.dim))
 
 
 def from_components(state: State) -> State:
@@ -133,7 +158,8 @@ def from_components(state: State) -> State:
     if not isinstance(state.F, tuple):
         return state
     like = state.x[:, 0]
-    return state.replace(C=T.array(state.C, like), F=T.array(state.F, like), bbar_e=T.array(state.bbar_e, like))
+    bbar = state.bbar_e if isinstance(state.bbar_e[0], tuple) else _bbar_comps(state.bbar_e)
+    return state.replace(C=T.array(state.C, like), F=T.array(state.F, like), bbar_e=T.array(bbar, like))
 
 
 def _permute(state: State, perm) -> State:
@@ -176,7 +202,9 @@ def p2g(state: State, params: Params, grid: Grid, dt) -> tuple[jax.Array, jax.Ar
     act = state.active.astype(x.dtype)
     mass = state.mass * act
     vol = state.vol0 * act
-    tau = _kirchhoff(_comps(state.F), _comps(state.bbar_e), params, d)
+    bb = state.bbar_e
+    bb = bb if isinstance(bb, tuple) and isinstance(bb[0], tuple) else _bbar_comps(bb)
+    tau = _kirchhoff(_comps(state.F), bb, params, d)
     Cc = _comps(state.C)
     # MLS-MPM: the force on node i is -sum_p V0_p tau_p grad w_ip, with grad w = 4/dx^2 w (x_i - x_p).
     k_stress = (-dt * 4.0 / grid.dx ** 2) * vol
@@ -339,7 +367,9 @@ def _constitutive(state: State, v, Cc, params: Params, grid: Grid, dt) -> State:
     like = state.x[:, 0]
     fc = T.add_diag(T.scale(Cc, dt), 1.0)
     F = T.matmul(fc, state.F)
-    bc, _, gamma = _return_map_components(state.bbar_e, _pad3(fc), params, dt)
+    packed = not isinstance(state.bbar_e[0], tuple)
+    bc, _, gamma = _return_map_components(_bbar_comps(state.bbar_e) if packed else state.bbar_e, _pad3(fc),
+                                          params, dt)
     # Particles never leave the stencil-safe region (the walls stop them long before).
     lo = jnp.asarray(grid.origin, like.dtype) + grid.dx
     hi = jnp.asarray(grid.origin, like.dtype) + grid.dx * (jnp.asarray(grid.shape, like.dtype) - 2.0)
@@ -353,7 +383,9 @@ def _constitutive(state: State, v, Cc, params: Params, grid: Grid, dt) -> State:
     zero = tuple(tuple(jnp.zeros_like(like) for _ in range(d)) for _ in range(d))
     return state.replace(
         x=jnp.where(keep[:, None], x, state.x), v=jnp.where(keep[:, None], v, 0.0),
-        C=keep_mat(Cc, zero), F=keep_mat(F, state.F), bbar_e=keep_mat(bc, state.bbar_e),
+        C=keep_mat(Cc, zero), F=keep_mat(F, state.F),
+        bbar_e=(tuple(jnp.where(keep, n_, o_) for n_, o_ in zip(_bbar_pack(bc, d), state.bbar_e)) if packed
+                else keep_mat(bc, state.bbar_e)),
         gamma_dot=jnp.where(keep, gamma, 0.0), t=state.t + dt)
 
 
