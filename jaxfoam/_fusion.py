@@ -6,6 +6,8 @@ cases in the MPM substep cost far more than materializing the value once:
 - Scalars (a plate's position, sin and cos of the time) broadcast into a grid-sized kernel are
   recomputed per grid node: a 18,669 x 2 select with a sin and a cos of the time inside ran at
   158 us against 40-50 us with the two values precomputed (float64).
+- Each stencil offset's grid index was recomputed from the positions (floor, convert, strides) in
+  its own fused kernel: the base index computed once per substep made the 3D step 1.08x faster.
 - In reverse mode the transpose of particle-to-grid is a gather of the grid cotangent (9 stencil
   offsets x particles x (d + 1) values); XLA fused the whole transposed grid update (colliders,
   momentum / mass) into that gather and ran it once per gathered value, not once per node.
@@ -22,12 +24,14 @@ import jax.numpy as jnp
 
 
 def hoist(tree, t):
-    """`tree` (small arrays computed from the time t, s) as materialized buffers.
+    """`tree` (arrays computed once, e.g. from the time t, s) as materialized buffers.
 
-    Identity for finite t (NaN otherwise, as sin(t) would give); differentiable (the JVP of a cond is
-    a cond)."""
-    return jax.lax.cond(jnp.isfinite(t), lambda a: a,
-                        lambda a: jax.tree_util.tree_map(lambda x: jnp.full_like(x, jnp.nan), a), tree)
+    Identity for finite t; otherwise NaN for floating-point leaves (as sin(t) would give) and 0 for
+    integer ones (a valid grid index). Differentiable (the JVP of a cond is a cond)."""
+    def other(a):
+        return jax.tree_util.tree_map(
+            lambda x: jnp.full_like(x, jnp.nan) if jnp.issubdtype(x.dtype, jnp.inexact) else jnp.zeros_like(x), a)
+    return jax.lax.cond(jnp.isfinite(t), lambda a: a, other, tree)
 
 
 @jax.custom_jvp

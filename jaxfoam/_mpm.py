@@ -135,6 +135,12 @@ def _bbar_comps(b):
     return ((xx, xy, xz), (xy, yy, yz), (xz, yz, zz))
 
 
+def _offset_index(offset, grid: Grid) -> int:
+    """Flat index difference of a stencil offset (static)."""
+    strides = np.cumprod((grid.shape[1:] + (1,))[::-1])[::-1]
+    return int(np.dot(offset, strides))
+
+
 def to_components(state: State) -> State:
     """The substep's working form: C and F as tuples of rows of (N,) component arrays, bbar_e as the
     tuple of its independent components (symmetric; in 2D plane strain xx, xy, yy, zz only).
@@ -191,9 +197,10 @@ def _comps(a):
     return a if isinstance(a, tuple) else T.comps(a)
 
 
-def p2g(state: State, params: Params, grid: Grid, dt) -> tuple[jax.Array, jax.Array]:
+def p2g(state: State, params: Params, grid: Grid, dt, idx0=None) -> tuple[jax.Array, jax.Array]:
     """Particle to grid: scatter mass and momentum (including the MLS-MPM stress impulse).
 
+    idx0: optional (N,) flat grid index of each particle's stencil base (computed from x if None).
     Returns (grid momentum (G, d) kg m/s, grid mass (G,) kg). Inactive particles carry zero mass
     and volume and contribute nothing. `state` may be in either form (`to_components`).
     """
@@ -222,7 +229,9 @@ def p2g(state: State, params: Params, grid: Grid, dt) -> tuple[jax.Array, jax.Ar
     A = jnp.stack([jnp.stack(row, axis=1) for row in affine], axis=1)
     cols = [W * (mvA[None, :, i] + sum(A[None, :, i, k] * dpos[k] for k in range(d))) for i in range(d)]
     vals = jnp.stack(cols + [W * mass[None]], axis=-1).reshape(-1, d + 1)
-    idx = jnp.concatenate([_flat_index(base, off, grid) for off in offs])
+    if idx0 is None:
+        idx0 = _flat_index(base, (0,) * d, grid)
+    idx = jnp.concatenate([idx0 + _offset_index(off, grid) for off in offs])
     grid_mv = jnp.zeros((grid.num_nodes, d + 1), x.dtype).at[idx].add(vals, mode="promise_in_bounds")
     # Reverse mode: the grid cotangent is materialized before the gather that transposes this
     # scatter (jaxfoam._fusion), and the grid is kept per substep by the rematerialization policy.
@@ -309,12 +318,13 @@ def g2p(state: State, grid_v, grid: Grid) -> tuple[jax.Array, jax.Array]:
     return v, T.array(C, state.x[:, 0])
 
 
-def _g2p(state: State, grid_v, grid: Grid):
+def _g2p(state: State, grid_v, grid: Grid, idx0=None):
     """`g2p` with C returned as components (rows of (N,) arrays), 1/s."""
     x, d = state.x, state.dim
     base, fx, w = _stencil(x, grid)
     strides = np.cumprod((grid.shape[1:] + (1,))[::-1])[::-1]
-    idx0 = _flat_index(base, (0,) * d, grid)
+    if idx0 is None:
+        idx0 = _flat_index(base, (0,) * d, grid)
     rest = list(itertools.product(range(3), repeat=d - 1))
     scale = 4.0 / grid.dx ** 2
     # Weights and position offsets along the other axes, per remaining offset (static).
@@ -410,12 +420,15 @@ def substep(state: State, params: Params, scene: Scene, grid: Grid, dt, fracture
 
 def _substep(state: State, params: Params, scene: Scene, grid: Grid, dt, fracture=None, colliders=()) -> State:
     """`substep` on the component form."""
+    # The flat grid index of each particle's stencil base, computed once per substep for p2g and g2p
+    # (left to XLA, every offset's index fusion recomputed it from the positions: 3D step 1.08x faster).
+    idx0 = hoist(_flat_index(_stencil(state.x, grid)[0], (0,) * state.dim, grid), state.t)
     with jax.named_scope("p2g"):
-        grid_mv, grid_m = p2g(state, params, grid, dt)
+        grid_mv, grid_m = p2g(state, params, grid, dt, idx0)
     with jax.named_scope("grid_update"):
         grid_v = grid_update(grid_mv, grid_m, scene, grid, state.t, dt, colliders)
     with jax.named_scope("g2p"):
-        v, C = _g2p(state, grid_v, grid)
+        v, C = _g2p(state, grid_v, grid, idx0)
         # Named: kept by reverse mode's per-substep rematerialization (jaxfoam._simulate.REMAT_SAVED).
         v, C = checkpoint_name((v, C), "g2p")
     with jax.named_scope("constitutive"):

@@ -25,8 +25,11 @@ def test_hoist_is_the_identity_on_values_and_gradients():
     g0 = jax.grad(_plain_grid_fn, argnums=(0, 1))(x, t)
     np.testing.assert_allclose(g[0], g0[0], rtol=1e-14)
     np.testing.assert_allclose(g[1], g0[1], rtol=1e-14)
-    # a non-finite time gives NaN, as sin(t) would
+    # a non-finite time gives NaN, as sin(t) would, and integer leaves (grid indices) stay valid: 0
     assert np.isnan(_grid_fn(x, jnp.float64(np.inf)))
+    idx = hoist(jnp.arange(5, dtype=jnp.int32) + 7, jnp.float64(np.nan))
+    np.testing.assert_array_equal(idx, np.zeros(5, np.int32))
+    np.testing.assert_array_equal(hoist(jnp.arange(5, dtype=jnp.int32), jnp.float64(0.0)), np.arange(5))
 
 
 def test_materialize_tangent_is_the_identity_in_forward_and_reverse_mode():
