@@ -25,6 +25,8 @@ from ._state import State
 # Grid nodes beyond the domain on each side: the quadratic stencil reaches 1.5 cells past a
 # particle, and the slip walls live on the domain boundary, so 3 cells keep every index in range.
 GRID_PAD = 3
+
+
 @dataclasses.dataclass(frozen=True)
 class Grid:
     """Static background grid. origin (d,) m is node (0, ..., 0); dx m; shape nodes per axis."""
