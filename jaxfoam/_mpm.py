@@ -1,8 +1,9 @@
 """One MLS-MPM substep in named stages: p2g -> grid_update -> g2p -> constitutive.
 
 Dimension-generic: d = x.shape[-1]; the 3^d stencil is unrolled at trace time as elementwise
-(N,)-array operations (XLA:CPU is slow at reductions over tiny axes), and all stencil offsets go
-through one fused scatter-add and one gather.
+(N,)-array operations (XLA:CPU is slow at reductions over tiny axes). All stencil offsets go through
+one scatter-add, and grid-to-particle gathers in a scan over the first axis's offsets; both move the
+last axis's 3 nodes per index as one window.
 """
 from __future__ import annotations
 
@@ -25,6 +26,13 @@ from ._state import State
 # Grid nodes beyond the domain on each side: the quadratic stencil reaches 1.5 cells past a
 # particle, and the slip walls live on the domain boundary, so 3 cells keep every index in range.
 GRID_PAD = 3
+# Particle-to-grid and grid-to-particle move the 3 consecutive nodes along the last axis (contiguous in
+# the flat grid) as one window: 3^(d-1) scatter / gather indices per particle instead of 3^d. XLA:CPU's
+# scatter and gather cost mostly per index: 2D step 1.09x (f32) / 1.11x (f64), 3D 1.12x (f32).
+_WINDOW_SCATTER = jax.lax.ScatterDimensionNumbers(update_window_dims=(1, 2), inserted_window_dims=(),
+                                                  scatter_dims_to_operand_dims=(0,))
+_WINDOW_GATHER = jax.lax.GatherDimensionNumbers(offset_dims=(1, 2), collapsed_slice_dims=(), start_index_map=(0,))
+_IN_BOUNDS = jax.lax.GatherScatterMode.PROMISE_IN_BOUNDS
 
 
 @dataclasses.dataclass(frozen=True)
@@ -230,11 +238,15 @@ def p2g(state: State, params: Params, grid: Grid, dt, idx0=None) -> tuple[jax.Ar
     mvA = jnp.stack(mv, axis=1)
     A = jnp.stack([jnp.stack(row, axis=1) for row in affine], axis=1)
     cols = [W * (mvA[None, :, i] + sum(A[None, :, i, k] * dpos[k] for k in range(d))) for i in range(d)]
-    vals = jnp.stack(cols + [W * mass[None]], axis=-1).reshape(-1, d + 1)
     if idx0 is None:
         idx0 = _flat_index(base, (0,) * d, grid)
-    idx = jnp.concatenate([idx0 + _offset_index(off, grid) for off in offs])
-    grid_mv = jnp.zeros((grid.num_nodes, d + 1), x.dtype).at[idx].add(vals, mode="promise_in_bounds")
+    # One scatter-add of (3, d + 1) windows: the last axis's 3 nodes per index (_WINDOW_SCATTER).
+    n, lead = x.shape[0], 3 ** (d - 1)
+    vals = jnp.stack(cols + [W * mass[None]], axis=-1)  # (K, N, d + 1); K in _offsets order, last axis fastest
+    vals = vals.reshape(lead, 3, n, d + 1).transpose(0, 2, 1, 3).reshape(lead * n, 3, d + 1)
+    idx = jnp.concatenate([idx0 + _offset_index(off + (0,), grid) for off in _offsets(d - 1)])
+    grid_mv = jax.lax.scatter_add(jnp.zeros((grid.num_nodes, d + 1), x.dtype), idx[:, None], vals,
+                                  _WINDOW_SCATTER, mode=_IN_BOUNDS)
     # Reverse mode: the grid cotangent is materialized before the gather that transposes this
     # scatter (jaxfoam._fusion), and the grid is kept per substep by the rematerialization policy.
     grid_mv = checkpoint_name(materialize_tangent(grid_mv, dt), "p2g_grid")
@@ -348,9 +360,13 @@ def _g2p(state: State, grid_v, grid: Grid, idx0=None):
         a, wa = xs
         dp0 = (a.astype(x.dtype) - fx[:, 0]) * (grid.dx * scale)
         ia = idx0 + a * int(strides[0])
+        windows = {}  # (N, 3, d): the last axis's 3 nodes, one gather per offset of the middle axes
         for r, wr, dpr in zip(rest, w_rest, dp_rest):
-            off = sum(r[k - 1] * int(strides[k]) for k in range(1, d))
-            g = grid_v.at[ia + off].get(mode="promise_in_bounds")
+            mid = r[:-1]
+            if mid not in windows:
+                start = ia + sum(mid[k - 1] * int(strides[k]) for k in range(1, d - 1))
+                windows[mid] = jax.lax.gather(grid_v, start[:, None], _WINDOW_GATHER, (3, d), mode=_IN_BOUNDS)
+            g = windows[mid][:, r[-1], :]
             wo = wa if wr is None else wa * wr
             vi = wo[:, None] * g
             dp = [dp0] + dpr
