@@ -269,8 +269,7 @@ def _return_map_components(bc, f3, params, dt):
     ratio = jnp.where(yielding, s_new / jnp.where(yielding, s_pre, 1.0), 1.0)
     b_ret = T.add_diag(T.scale(dev_pre, ratio), tr3)
     b_ret = T.scale(b_ret, _inv_cbrt(T.det(b_ret)))  # renormalize to det 1 (eq. 16)
-    bbar_new = tuple(tuple(r if (T._is_const(r, 0) and T._is_const(p, 0)) else jnp.where(yielding, r, p)
-                           for r, p in zip(rr, rp)) for rr, rp in zip(b_ret, bpre))
+    bbar_new = T.where(yielding, b_ret, bpre)
     sq_new = T.frob_sq(T.dev(bbar_new))
     pos_new = sq_new > 0
     s_ret = params.mu * jnp.where(pos_new, jnp.sqrt(jnp.where(pos_new, sq_new, 1.0)), 0.0)

@@ -1,6 +1,6 @@
 """Fusion boundaries for XLA:CPU: where recomputation inside a fused kernel costs more than a buffer.
 
-XLA fuses elementwise producers into their consumers and recomputes them per consumer element. Two
+XLA fuses elementwise producers into their consumers and recomputes them per consumer element. Three
 cases in the MPM substep cost far more than materializing the value once:
 
 - Scalars (a plate's position, sin and cos of the time) broadcast into a grid-sized kernel are

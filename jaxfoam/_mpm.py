@@ -134,10 +134,12 @@ def _bbar_pack(b, d):
 
 
 def _bbar_comps(b):
-    """3x3 components of bbar_e from an (N, 3, 3) array or from `_bbar_pack`'s tuple (the plane-strain
-    zeros as constants, which the component algebra folds away)."""
+    """3x3 components of bbar_e from an (N, 3, 3) array, from `_bbar_pack`'s tuple (the plane-strain
+    zeros as constants, which the component algebra folds away) or from 3x3 components (as is)."""
     if not isinstance(b, tuple):
         return T.comps(b)
+    if isinstance(b[0], tuple):
+        return b
     if len(b) == 4:
         xx, xy, yy, zz = b
         return ((xx, xy, 0.0), (xy, yy, 0.0), (0.0, 0.0, zz))
@@ -174,8 +176,8 @@ def from_components(state: State) -> State:
     if not isinstance(state.F, tuple):
         return state
     like = state.x[:, 0]
-    bbar = state.bbar_e if isinstance(state.bbar_e[0], tuple) else _bbar_comps(state.bbar_e)
-    return state.replace(C=T.array(state.C, like), F=T.array(state.F, like), bbar_e=T.array(bbar, like))
+    return state.replace(C=T.array(state.C, like), F=T.array(state.F, like),
+                         bbar_e=T.array(_bbar_comps(state.bbar_e), like))
 
 
 def _permute(state: State, perm) -> State:
@@ -219,9 +221,7 @@ def p2g(state: State, params: Params, grid: Grid, dt, idx0=None) -> tuple[jax.Ar
     act = state.active.astype(x.dtype)
     mass = state.mass * act
     vol = state.vol0 * act
-    bb = state.bbar_e
-    bb = bb if isinstance(bb, tuple) and isinstance(bb[0], tuple) else _bbar_comps(bb)
-    tau = _kirchhoff(_comps(state.F), bb, params, d)
+    tau = _kirchhoff(_comps(state.F), _bbar_comps(state.bbar_e), params, d)
     Cc = _comps(state.C)
     # MLS-MPM: the force on node i is -sum_p V0_p tau_p grad w_ip, with grad w = 4/dx^2 w (x_i - x_p).
     k_stress = (-dt * 4.0 / grid.dx ** 2) * vol
@@ -395,9 +395,8 @@ def _constitutive(state: State, v, Cc, params: Params, grid: Grid, dt) -> State:
     like = state.x[:, 0]
     fc = T.add_diag(T.scale(Cc, dt), 1.0)
     F = T.matmul(fc, state.F)
-    packed = not isinstance(state.bbar_e[0], tuple)
-    bc, _, gamma = _return_map_components(_bbar_comps(state.bbar_e) if packed else state.bbar_e, _pad3(fc),
-                                          params, dt)
+    b_old = _bbar_comps(state.bbar_e)
+    bc, _, gamma = _return_map_components(b_old, _pad3(fc), params, dt)
     # Particles never leave the stencil-safe region (the walls stop them long before).
     lo = jnp.asarray(grid.origin, like.dtype) + grid.dx
     hi = jnp.asarray(grid.origin, like.dtype) + grid.dx * (jnp.asarray(grid.shape, like.dtype) - 2.0)
@@ -412,8 +411,7 @@ def _constitutive(state: State, v, Cc, params: Params, grid: Grid, dt) -> State:
     return state.replace(
         x=jnp.where(keep[:, None], x, state.x), v=jnp.where(keep[:, None], v, 0.0),
         C=keep_mat(Cc, zero), F=keep_mat(F, state.F),
-        bbar_e=(tuple(jnp.where(keep, n_, o_) for n_, o_ in zip(_bbar_pack(bc, d), state.bbar_e)) if packed
-                else keep_mat(bc, state.bbar_e)),
+        bbar_e=tuple(jnp.where(keep, n_, o_) for n_, o_ in zip(_bbar_pack(bc, d), _bbar_pack(b_old, d))),
         gamma_dot=jnp.where(keep, gamma, 0.0), t=state.t + dt)
 
 
