@@ -36,17 +36,17 @@ from ._state import State
 
 MODES = ("fwd", "rev")
 # XLA:CPU codegen options for the differentiated rollout (applied on the CPU backend only; results
-# agree to round-off):
-# - the older elemental emitters compile these large jvp/transpose programs in about half the time of
-#   the default fusion emitters, and run them as fast or faster (measured on the 2D hanging plate:
-#   jacfwd compile 30 -> 16 s, reverse 69 -> 39 s, reverse run time -25%);
-# - an empty YNNPACK fusion list (jaxlib 0.10.2 sends reductions to that library): the transposes of
-#   the per-particle broadcasts over the few velocity components and stencil offsets are reductions
-#   over tiny axes, which the library call ran 4x slower than XLA's own loop (a (18669, 2) -> (18669,)
-#   sum: 0.44 vs 0.10 ms). Reverse mode on the 2D hanging plate at dx 2.5 mm, 2 frames: 5.3-5.8x ->
-#   4.4-4.6x the forward CPU time in four A/B runs in one process; over 10 frames the A/B gains were
-#   smaller and mixed (CPU time -4% and +7%, wall -4% and -8%); the forward run unchanged.
-CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+# agree to round-off): an empty YNNPACK fusion list (jaxlib 0.10.2 sends reductions to that library).
+# The transposes of the per-particle broadcasts over the few velocity components and stencil offsets
+# are reductions over tiny axes, which the library call ran 4x slower than XLA's own loop (a
+# (18669, 2) -> (18669,) sum: 0.44 vs 0.10 ms). Reverse mode on the 2D hanging plate at dx 2.5 mm,
+# 2 frames: 5.3-5.8x -> 4.4-4.6x the forward CPU time in four A/B runs in one process.
+# The older elemental emitters (xla_cpu_use_fusion_emitters=False) were used here too until
+# 2026-11-24: they had compiled these programs faster and run them 25% faster, but on the current
+# code the two are a wash for the gradients (2D hanging plate, dx 2.5 mm, 10 frames, two same-process
+# A/B runs: reverse 1.07x and 0.98x CPU time, jacfwd 1.02x, with the default emitters), while the
+# forward rollout runs 1.2-1.4x faster with the default emitters; one set of emitters serves both.
+CPU_COMPILER_OPTIONS = {}
 if tuple(jaxlib.version.__version_info__[:3]) >= (0, 10, 2):  # the option exists from this jaxlib on
     CPU_COMPILER_OPTIONS["xla_cpu_experimental_ynn_fusion_type"] = ""
 PARAM_FIELDS = tuple(f.name for f in dataclasses.fields(Params))
