@@ -9,6 +9,8 @@ noisy. This script measures both in one process, alternating timed runs so that 
     transfer, slip walls 3 cells thick), 2 CPU threads, float32;
   jaxfoam: the 2D float32 case of experiments/bench_step.py (the full Herschel-Bulkley step with
     the return map; 8,192 particles on 128^2, particles sorted by cell for each timed run).
+Every round starts both from their initial states, after SETTLE_S of idle time; the reported ratio is
+the median of the per-round ratios.
 
 Taichi is not a jaxfoam dependency: `pip install taichi==1.7.4` to run this script. Usage:
 python experiments/bench_peer.py [--rounds N]. Writes experiments/bench_peer.md.
@@ -33,6 +35,9 @@ TOY_DT = 2e-4        # s, the toy's time step
 TOY_E = 400.0        # Pa, the toy fluid's bulk stiffness (density 1 kg/m^3, particle volume (dx/2)^2)
 TOY_STEPS = 100      # substeps per timed toy run (the toy step is ~0.1-0.2 ms)
 HB_STEPS = 100       # substeps per timed jaxfoam run, as bench_step's 2D case
+# s of idle time before each timed run, so that neither starts while the other's worker threads are
+# still spinning down (both runtimes keep their threads busy-waiting for a while after a run).
+SETTLE_S = 0.1
 
 
 def make_taichi_toy(threads: int = 2):
@@ -105,7 +110,9 @@ def make_taichi_toy(threads: int = 2):
             J[p] *= 1 + TOY_DT * new_C.trace()
             C[p] = new_C
 
-    init()
+    def reset():
+        init()
+        ti.sync()
 
     def run(steps):
         for _ in range(steps):
@@ -113,7 +120,8 @@ def make_taichi_toy(threads: int = 2):
         ti.sync()
         return float(np.isfinite(x.to_numpy()).all())
 
-    return run
+    reset()
+    return run, reset
 
 
 def make_jaxfoam():
@@ -130,18 +138,24 @@ def make_jaxfoam():
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--rounds", type=int, default=7, help="interleaved timed runs of each (default 7)")
+    ap.add_argument("--rounds", type=int, default=31, help="interleaved timed runs of each (default 31)")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "bench_peer.md"))
     args = ap.parse_args(argv)
-    toy = make_taichi_toy()
+    toy, toy_reset = make_taichi_toy()
     hb = make_jaxfoam()
     toy(TOY_STEPS)  # compile and warm up
     hb()
     t_toy, t_hb, loads = [], [], []
     for _ in range(args.rounds):
+        # Both start every round from their initial state (the jaxfoam rollout always does): left to
+        # run on, the toy's fluid would pile up on the floor over the rounds and slow down (scatter
+        # contention), which would favour jaxfoam more the more rounds are run.
+        toy_reset()
+        time.sleep(SETTLE_S)
         t0 = time.perf_counter()
         ok_toy = toy(TOY_STEPS)
         t_toy.append(time.perf_counter() - t0)
+        time.sleep(SETTLE_S)
         t0 = time.perf_counter()
         ok_hb = hb()
         t_hb.append(time.perf_counter() - t0)
