@@ -117,11 +117,16 @@ def _stencil_weights(w, offs):
     return jnp.stack(W)
 
 
+def _strides(shape) -> list[int]:
+    """Row-major strides (in elements) of an array of the given shape, as Python ints (static)."""
+    return [int(s) for s in np.cumprod((tuple(shape[1:]) + (1,))[::-1])[::-1]]
+
+
 def _flat_index(base, offset, grid: Grid):
-    strides = np.cumprod((grid.shape[1:] + (1,))[::-1])[::-1]
+    strides = _strides(grid.shape)
     idx = 0
     for k in range(grid.dim):
-        idx = idx + (base[:, k] + offset[k]) * int(strides[k])
+        idx = idx + (base[:, k] + offset[k]) * strides[k]
     return idx
 
 
@@ -149,8 +154,7 @@ def _bbar_comps(b):
 
 def _offset_index(offset, grid: Grid) -> int:
     """Flat index difference of a stencil offset (static)."""
-    strides = np.cumprod((grid.shape[1:] + (1,))[::-1])[::-1]
-    return int(np.dot(offset, strides))
+    return int(np.dot(offset, _strides(grid.shape)))
 
 
 def to_components(state: State) -> State:
@@ -352,7 +356,7 @@ def _g2p(state: State, grid_v, grid: Grid, idx0=None):
     """`g2p` with C returned as components (rows of (N,) arrays), 1/s."""
     x, d = state.x, state.dim
     base, fx, w = _stencil(x, grid)
-    strides = np.cumprod((grid.shape[1:] + (1,))[::-1])[::-1]
+    strides = _strides(grid.shape)
     if idx0 is None:
         idx0 = _flat_index(base, (0,) * d, grid)
     rest = list(itertools.product(range(3), repeat=d - 1))
@@ -375,12 +379,12 @@ def _g2p(state: State, grid_v, grid: Grid, idx0=None):
         v, C = carry
         a, wa = xs
         dp0 = (a.astype(x.dtype) - fx[:, 0]) * (grid.dx * scale)
-        ia = idx0 + a * int(strides[0])
+        ia = idx0 + a * strides[0]
         windows = {}  # (N, 3, d): the last axis's 3 nodes, one gather per offset of the middle axes
         for r, wr, dpr in zip(rest, w_rest, dp_rest):
             mid = r[:-1]
             if mid not in windows:
-                start = ia + sum(mid[k - 1] * int(strides[k]) for k in range(1, d - 1))
+                start = ia + sum(mid[k - 1] * strides[k] for k in range(1, d - 1))
                 windows[mid] = jax.lax.gather(grid_v, start[:, None], _WINDOW_GATHER, (3, d), mode=_IN_BOUNDS)
             g = windows[mid][:, r[-1], :]
             wo = wa if wr is None else wa * wr

@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._constitutive import det
-from ._mpm import Grid, _flat_index, _offsets, _stencil
+from ._mpm import Grid, _flat_index, _offsets, _stencil, _strides
 from ._scene import DEFAULT_PPC
 from ._state import State
 from .sdf import material_sdf
@@ -222,10 +222,6 @@ def _fix_tensors(F, bbar, dtype):
 def _hash_layout(grid: Grid, cell: float):
     n = tuple(int(math.ceil((s - 1) * grid.dx / cell)) + 1 for s in grid.shape)
     return n, _strides(n)
-
-
-def _strides(shape):
-    return [int(s) for s in np.cumprod((tuple(shape[1:]) + (1,))[::-1])[::-1]]
 
 
 def nearest_within(x, active, radius: float, grid: Grid, cell_capacity: int = 4):

@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._fusion import hoist
+from ._mpm import _strides
 
 
 def _norm(v, axis=-1):
@@ -340,10 +341,6 @@ class LatticeSDF:
                 wgt = wgt * (t[:, k] if corner[k] else 1.0 - t[:, k])
             out = out + wgt * self.values[flat]
         return jnp.where(valid_all, out, self.band)
-
-
-def _strides(shape):
-    return [int(s) for s in np.cumprod((tuple(shape[1:]) + (1,))[::-1])[::-1]]
 
 
 def _ball_offsets(radius_cells: float, d: int):
