@@ -4,12 +4,19 @@ Dimension-generic: d = x.shape[-1]; the 3^d stencil is unrolled at trace time as
 (N,)-array operations (XLA:CPU is slow at reductions over tiny axes). All stencil offsets go through
 one scatter-add, and grid-to-particle gathers in a scan over the first axis's offsets; both move the
 last axis's 3 nodes per index as one window.
+
+Reverse mode can go through hand-written adjoints of the two transfers (`hand_adjoint=True`): one
+gather-and-contract pass per transfer instead of autodiff's transposed broadcasts and stacks
+(docs/gradients.md: reverse mode 1.1-1.3x faster); autodiff's own derivative stays the default, as
+the only one that forward mode (jvp, jacfwd) can use.
 """
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 import math
+import operator
 
 import jax
 import jax.numpy as jnp
@@ -213,10 +220,134 @@ def _comps(a):
     return a if isinstance(a, tuple) else T.comps(a)
 
 
-def p2g(state: State, params: Params, grid: Grid, dt, idx0=None) -> tuple[jax.Array, jax.Array]:
+def _payload_geometry(fx, w, grid: Grid):
+    """Per-offset weights W (K, N) and node-minus-particle offsets dpos (d lists of (K, N), m)."""
+    d = fx.shape[1]
+    offs = _offsets(d)
+    W = _stencil_weights(w, offs)
+    offa = np.asarray(offs)
+    dpos = [(jnp.asarray(offa[:, k], fx.dtype)[:, None] - fx[None, :, k]) * grid.dx for k in range(d)]
+    return W, dpos
+
+
+def _p2g_scatter(grid: Grid, W, dpos, idx0, mvA, A, mass=None):
+    """Scatter-add of the APIC payload W_ip (mv_p + A_p (x_i - x_p)) [, W_ip m_p] to the grid:
+    (G, d) or, with mass, (G, d + 1). W (K, N), dpos d x (K, N) m, mvA (N, d), A (N, d, d)."""
+    d = A.shape[-1]
+    # All stencil offsets in one broadcast expression (K, N, d + 1): one loop fusion feeding one
+    # fused scatter-add (written per offset and concatenated, XLA:CPU recomputed the stress per offset).
+    # The per-particle payload is stacked first: XLA:CPU then computes the stress once per particle,
+    # not once per particle and offset.
+    cols = [W * (mvA[None, :, i] + sum(A[None, :, i, k] * dpos[k] for k in range(d))) for i in range(d)]
+    if mass is not None:
+        cols.append(W * mass[None])
+    c = len(cols)
+    # One scatter-add of (3, c) windows: the last axis's 3 nodes per index (_WINDOW_SCATTER).
+    n, lead = W.shape[1], 3 ** (d - 1)
+    vals = jnp.stack(cols, axis=-1)  # (K, N, c); K in _offsets order, last axis fastest
+    vals = vals.reshape(lead, 3, n, c).transpose(0, 2, 1, 3).reshape(lead * n, 3, c)
+    idx = jnp.concatenate([idx0 + _offset_index(off + (0,), grid) for off in _offsets(d - 1)])
+    return jax.lax.scatter_add(jnp.zeros((grid.num_nodes, c), W.dtype), idx[:, None], vals,
+                               _WINDOW_SCATTER, mode=_IN_BOUNDS)
+
+
+def _window_loop(table, x, idx0, grid: Grid, init, body, derivs=False):
+    """Sum over the 3^d stencil nodes of each particle, gathering the grid rows `table` (G, c) of
+    the last axis's 3 nodes as one window. `body(carry, g (N, c), W (N,), dpos [d x (N,)] m,
+    dW [d x (N,)] 1/m or None) -> carry` runs per node; the first axis's 3 offsets are a scan."""
+    d = x.shape[1]
+    _, fx, w = _stencil(x, grid)
+    inv = 1.0 / grid.dx
+    dw = [-(1.5 - fx) * inv, -2.0 * (fx - 1.0) * inv, (fx - 0.5) * inv] if derivs else None
+    strides = _strides(grid.shape)
+    rest = list(itertools.product(range(3), repeat=d - 1))
+    geo = []
+    for r in rest:
+        ws = [w[r[k - 1]][:, k] for k in range(1, d)]
+        wr = functools.reduce(operator.mul, ws)
+        dwr = None
+        if derivs:  # d wr / d x_j for the axes j = 1 .. d - 1
+            dwr = [functools.reduce(operator.mul, [dw[r[k - 1]][:, k] if k == j else ws[k - 1]
+                                                   for k in range(1, d)]) for j in range(1, d)]
+        dpr = [(r[k - 1] - fx[:, k]) * grid.dx for k in range(1, d)]
+        geo.append((r, wr, dwr, dpr))
+
+    def step(carry, xs):
+        a, wa, dwa = xs
+        dp0 = (a.astype(x.dtype) - fx[:, 0]) * grid.dx
+        ia = idx0 + a * strides[0]
+        windows = {}
+        for r, wr, dwr, dpr in geo:
+            mid = r[:-1]
+            if mid not in windows:
+                start = ia + sum(mid[k - 1] * strides[k] for k in range(1, d - 1))
+                windows[mid] = jax.lax.gather(table, start[:, None], _WINDOW_GATHER, (3, table.shape[1]),
+                                              mode=_IN_BOUNDS)
+            g = windows[mid][:, r[-1], :]
+            dW = None if dwr is None else [dwa * wr] + [wa * v for v in dwr]
+            carry = body(carry, g, wa * wr, [dp0] + dpr, dW)
+        return carry, None
+
+    wa = jnp.stack([w[a][:, 0] for a in range(3)])
+    dwa = jnp.stack([dw[a][:, 0] for a in range(3)]) if derivs else jnp.zeros_like(wa)
+    return jax.lax.scan(step, init, (jnp.arange(3, dtype=jnp.int32), wa, dwa))[0]
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _p2g_transfer(grid, x, idx0, mvA, A, mass):
+    """`_p2g_scatter` (with the mass column) with a hand-written reverse-mode derivative in x, mvA,
+    A and mass: the grid cotangent is gathered once per stencil window and contracted per particle."""
+    _, fx, w = _stencil(x, grid)
+    W, dpos = _payload_geometry(fx, w, grid)
+    return _p2g_scatter(grid, W, dpos, idx0, mvA, A, mass)
+
+
+def _p2g_transfer_fwd(grid, x, idx0, mvA, A, mass):
+    return _p2g_transfer(grid, x, idx0, mvA, A, mass), (x, idx0, mvA, A, mass)
+
+
+def _p2g_transfer_bwd(grid, res, ct):
+    """Cotangents of (x, idx0, mvA, A, mass) from the grid cotangent ct = (c_i (d), c_i^m) per node i.
+
+    With W_ip the weight, r_ip = x_i - x_p and s_ip = c_i . (mv_p + A_p r_ip) + c_i^m m_p:
+      d mv_p = sum_i W_ip c_i,   d A_p = sum_i W_ip c_i r_ip^T,   d m_p = sum_i W_ip c_i^m,
+      d x_p = sum_i grad_p W_ip s_ip - A_p^T (sum_i W_ip c_i)      (d r_ip / d x_p = -I).
+    One pass over the stencil windows of ct (the gather that autodiff would also do), all sums
+    accumulated per particle in it."""
+    x, idx0, mvA, A, mass = res
+    d = x.shape[1]
+    z = jnp.zeros_like(x[:, 0])
+
+    def body(carry, g, W, dpos, dW):
+        G0, G1, Dx = carry
+        s = g[:, d] * mass
+        for i in range(d):
+            s = s + g[:, i] * (mvA[:, i] + sum(A[:, i, j] * dpos[j] for j in range(d)))
+        Wg = [W * g[:, c] for c in range(d + 1)]
+        G0 = tuple(G0[c] + Wg[c] for c in range(d + 1))
+        G1 = tuple(tuple(G1[i][j] + Wg[i] * dpos[j] for j in range(d)) for i in range(d))
+        Dx = tuple(Dx[a] + dW[a] * s for a in range(d))
+        return G0, G1, Dx
+
+    init = ((z,) * (d + 1), tuple((z,) * d for _ in range(d)), (z,) * d)
+    G0, G1, Dx = _window_loop(ct, x, idx0, grid, init, body, derivs=True)
+    dmv = jnp.stack(G0[:d], axis=1)
+    dA = jnp.stack([jnp.stack(row, axis=1) for row in G1], axis=1)
+    # d(x_i - x_p)/dx_p = -1: the affine term's share.
+    dx = jnp.stack([Dx[a] - sum(A[:, i, a] * G0[i] for i in range(d)) for a in range(d)], axis=1)
+    return dx, None, dmv, dA, G0[d]
+
+
+_p2g_transfer.defvjp(_p2g_transfer_fwd, _p2g_transfer_bwd)
+
+
+def p2g(state: State, params: Params, grid: Grid, dt, idx0=None,
+        hand_adjoint: bool = False) -> tuple[jax.Array, jax.Array]:
     """Particle to grid: scatter mass and momentum (including the MLS-MPM stress impulse).
 
     idx0: optional (N,) flat grid index of each particle's stencil base (computed from x if None).
+    hand_adjoint: the scatter's reverse-mode derivative is the hand-written one (`_p2g_transfer`):
+      faster vjp/grad, but the result is then not forward-differentiable (jvp, jacfwd).
     Returns (grid momentum (G, d) kg m/s, grid mass (G,) kg). Inactive particles carry zero mass
     and volume and contribute nothing. `state` may be in either form (`to_components`).
     """
@@ -231,26 +362,15 @@ def p2g(state: State, params: Params, grid: Grid, dt, idx0=None) -> tuple[jax.Ar
     k_stress = (-dt * 4.0 / grid.dx ** 2) * vol
     affine = [[k_stress * tau[i][j] + mass * Cc[i][j] for j in range(d)] for i in range(d)]
     mv = [mass * state.v[:, i] for i in range(d)]
-    offs = _offsets(d)
-    W = _stencil_weights(w, offs)
-    offa = np.asarray(offs)
-    dpos = [(jnp.asarray(offa[:, k], x.dtype)[:, None] - fx[None, :, k]) * grid.dx for k in range(d)]  # (K, N) m
-    # All stencil offsets in one broadcast expression (K, N, d + 1): one loop fusion feeding one
-    # fused scatter-add (written per offset and concatenated, XLA:CPU recomputed the stress per offset).
-    # The per-particle payload is stacked first: XLA:CPU then computes the stress once per particle,
-    # not once per particle and offset.
+    W, dpos = _payload_geometry(fx, w, grid)
     mvA = jnp.stack(mv, axis=1)
     A = jnp.stack([jnp.stack(row, axis=1) for row in affine], axis=1)
-    cols = [W * (mvA[None, :, i] + sum(A[None, :, i, k] * dpos[k] for k in range(d))) for i in range(d)]
     if idx0 is None:
         idx0 = _flat_index(base, (0,) * d, grid)
-    # One scatter-add of (3, d + 1) windows: the last axis's 3 nodes per index (_WINDOW_SCATTER).
-    n, lead = x.shape[0], 3 ** (d - 1)
-    vals = jnp.stack(cols + [W * mass[None]], axis=-1)  # (K, N, d + 1); K in _offsets order, last axis fastest
-    vals = vals.reshape(lead, 3, n, d + 1).transpose(0, 2, 1, 3).reshape(lead * n, 3, d + 1)
-    idx = jnp.concatenate([idx0 + _offset_index(off + (0,), grid) for off in _offsets(d - 1)])
-    grid_mv = jax.lax.scatter_add(jnp.zeros((grid.num_nodes, d + 1), x.dtype), idx[:, None], vals,
-                                  _WINDOW_SCATTER, mode=_IN_BOUNDS)
+    if hand_adjoint:
+        grid_mv = _p2g_transfer(grid, x, idx0, mvA, A, mass)
+    else:
+        grid_mv = _p2g_scatter(grid, W, dpos, idx0, mvA, A, mass)
     # Reverse mode: the grid cotangent is materialized before the gather that transposes this
     # scatter (jaxfoam._fusion), and the grid is kept per substep by the rematerialization policy.
     grid_mv = checkpoint_name(materialize_tangent(grid_mv, dt), "p2g_grid")
@@ -352,13 +472,19 @@ def g2p(state: State, grid_v, grid: Grid) -> tuple[jax.Array, jax.Array]:
     return v, T.array(C, state.x[:, 0])
 
 
-def _g2p(state: State, grid_v, grid: Grid, idx0=None):
-    """`g2p` with C returned as components (rows of (N,) arrays), 1/s."""
-    x, d = state.x, state.dim
+def _g2p(state: State, grid_v, grid: Grid, idx0=None, hand_adjoint: bool = False):
+    """`g2p` with C returned as components (rows of (N,) arrays), 1/s; `hand_adjoint` as in `p2g`."""
+    if idx0 is None:
+        idx0 = _flat_index(_stencil(state.x, grid)[0], (0,) * state.dim, grid)
+    if hand_adjoint:
+        return _g2p_transfer(grid, state.x, grid_v, idx0)
+    return _g2p_impl(state.x, grid_v, grid, idx0)
+
+
+def _g2p_impl(x, grid_v, grid: Grid, idx0):
+    d = x.shape[1]
     base, fx, w = _stencil(x, grid)
     strides = _strides(grid.shape)
-    if idx0 is None:
-        idx0 = _flat_index(base, (0,) * d, grid)
     rest = list(itertools.product(range(3), repeat=d - 1))
     scale = 4.0 / grid.dx ** 2
     # Weights and position offsets along the other axes, per remaining offset (static).
@@ -399,6 +525,52 @@ def _g2p(state: State, grid_v, grid: Grid, idx0=None):
     wa = jnp.stack([w[a][:, 0] for a in range(3)])
     (v, C), _ = jax.lax.scan(accumulate, zero, (jnp.arange(3, dtype=jnp.int32), wa))
     return v, C
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _g2p_transfer(grid, x, grid_v, idx0):
+    """`_g2p` (v (N, d) m/s, C components 1/s) with a hand-written reverse-mode derivative in x and
+    grid_v: one gather of the grid velocities for the position derivative and one scatter-add of
+    the cotangent payload (the same APIC form as particle-to-grid)."""
+    return _g2p_impl(x, grid_v, grid, idx0)
+
+
+def _g2p_transfer_fwd(grid, x, grid_v, idx0):
+    v, C = _g2p_impl(x, grid_v, grid, idx0)
+    return (v, C), (x, grid_v, idx0, v)
+
+
+def _g2p_transfer_bwd(grid, res, ct):
+    """Cotangents of (x, grid_v, idx0) from (cv, cC), the cotangents of v_p = sum_i W_ip v_i and
+    C_p = k sum_i W_ip v_i r_ip^T (k = 4 / dx^2, r_ip = x_i - x_p):
+      d v_i = sum_p W_ip (cv_p + k cC_p r_ip)   (a particle-to-grid scatter of that payload),
+      d x_p = sum_i grad_p W_ip v_i . (cv_p + k cC_p r_ip) - k cC_p^T v_p."""
+    x, grid_v, idx0, v = res
+    cv, cC = ct
+    d = x.shape[1]
+    scale = 4.0 / grid.dx ** 2
+    # The cotangents as buffers (jaxfoam._fusion): fused into the payload, XLA:CPU recomputed their
+    # producers (the transposed constitutive update) per stencil node.
+    cv, cC = hoist((cv, cC), x[0, 0])
+    cCs = [[scale * cC[i][j] for j in range(d)] for i in range(d)]
+
+    def body(Dx, g, W, dpos, dW):
+        s = 0.0
+        for i in range(d):
+            s = s + g[:, i] * (cv[:, i] + sum(cCs[i][j] * dpos[j] for j in range(d)))
+        return tuple(Dx[a] + dW[a] * s for a in range(d))
+
+    Dx = _window_loop(grid_v, x, idx0, grid, (jnp.zeros_like(x[:, 0]),) * d, body, derivs=True)
+    # d(x_i - x_p)/dx_p = -1 in C's offsets: sum_i cC_ia (scale sum_k W_k g_k,i) = sum_i cCs_ia v_i.
+    dx = jnp.stack([Dx[a] - sum(cCs[i][a] * v[:, i] for i in range(d)) for a in range(d)], axis=1)
+    _, fx, w = _stencil(x, grid)
+    W, dpos = _payload_geometry(fx, w, grid)
+    A = jnp.stack([jnp.stack(row, axis=1) for row in cCs], axis=1)
+    dgrid = _p2g_scatter(grid, W, dpos, idx0, cv, A)
+    return dx, dgrid, None
+
+
+_g2p_transfer.defvjp(_g2p_transfer_fwd, _g2p_transfer_bwd)
 
 
 def constitutive(state: State, v, C, params: Params, grid: Grid, dt) -> State:
@@ -442,29 +614,33 @@ def _pad3(M):
                  for i in range(3))
 
 
-def substep(state: State, params: Params, scene: Scene, grid: Grid, dt, fracture=None, colliders=()) -> State:
+def substep(state: State, params: Params, scene: Scene, grid: Grid, dt, fracture=None, colliders=(),
+            hand_adjoint: bool = False) -> State:
     """One explicit MLS-MPM step of length dt (s): the chain of named stages.
 
     Optional static stages: `colliders` (see `apply_colliders`), and `fracture`, an object with
     `apply(new_state, old_state, grid_m, grid) -> State` run after the constitutive update
     (`jaxfoam.fracture.FractureConfig`). With the defaults the step is the plain MLS-MPM step.
+    hand_adjoint: the transfers' reverse-mode derivatives are hand-written (see `p2g`); the step is
+    then differentiable in reverse mode only.
     Returns the state in the form it was given in (arrays, or components: `to_components`).
     """
-    new = _substep(to_components(state), params, scene, grid, dt, fracture, colliders)
+    new = _substep(to_components(state), params, scene, grid, dt, fracture, colliders, hand_adjoint)
     return new if isinstance(state.F, tuple) else from_components(new)
 
 
-def _substep(state: State, params: Params, scene: Scene, grid: Grid, dt, fracture=None, colliders=()) -> State:
+def _substep(state: State, params: Params, scene: Scene, grid: Grid, dt, fracture=None, colliders=(),
+             hand_adjoint: bool = False) -> State:
     """`substep` on the component form."""
     # The flat grid index of each particle's stencil base, computed once per substep for p2g and g2p
     # (left to XLA, every offset's index fusion recomputed it from the positions: 3D step 1.08x faster).
     idx0 = hoist(_flat_index(_stencil(state.x, grid)[0], (0,) * state.dim, grid), state.t)
     with jax.named_scope("p2g"):
-        grid_mv, grid_m = p2g(state, params, grid, dt, idx0)
+        grid_mv, grid_m = p2g(state, params, grid, dt, idx0, hand_adjoint)
     with jax.named_scope("grid_update"):
         grid_v = grid_update(grid_mv, grid_m, scene, grid, state.t, dt, colliders)
     with jax.named_scope("g2p"):
-        v, C = _g2p(state, grid_v, grid, idx0)
+        v, C = _g2p(state, grid_v, grid, idx0, hand_adjoint)
         # Named: kept by reverse mode's per-substep rematerialization (jaxfoam._simulate.REMAT_SAVED).
         v, C = checkpoint_name((v, C), "g2p")
     with jax.named_scope("constitutive"):

@@ -99,7 +99,7 @@ class Plan:
 
 
 def _rollout_impl(state0, params, scene, frame_times, frame_dts, grid, substeps, observe, checkpoint,
-                  resample=None, fracture=None, colliders=(), sort=SORT_BY_CELL):
+                  resample=None, fracture=None, colliders=(), sort=SORT_BY_CELL, hand_adjoint=False):
     def frame(state, inputs):
         t_target, dt = inputs[:2]
 
@@ -111,7 +111,7 @@ def _rollout_impl(state0, params, scene, frame_times, frame_dts, grid, substeps,
 
         # Within a frame the state is carried in component form (jaxfoam._mpm.to_components).
         def sub(s, i):
-            s = _substep(s, params, scene, grid, dt, fracture, colliders)
+            s = _substep(s, params, scene, grid, dt, fracture, colliders, hand_adjoint)
             if resample is not None:
                 # Resampling pass after every `resample.every`-th substep of the whole rollout.
                 n = inputs[2] * substeps + i + 1
@@ -145,7 +145,7 @@ def _rollout_impl(state0, params, scene, frame_times, frame_dts, grid, substeps,
 
 
 _rollout_jit = jax.jit(_rollout_impl, static_argnames=("grid", "substeps", "observe", "checkpoint", "resample",
-                                                       "fracture", "colliders", "sort"))
+                                                       "fracture", "colliders", "sort", "hand_adjoint"))
 
 
 class Simulator:
@@ -226,11 +226,16 @@ class Simulator:
         return self.plan.substeps * len(self.plan.frame_times)
 
     def rollout(self, params: Params, state0: State | None = None, scene: Scene | None = None,
-                observe: Callable = observe_default, checkpoint: bool = True):
+                observe: Callable = observe_default, checkpoint: bool = True, hand_adjoint: bool = False):
         """Pure, jit-compiled, differentiable rollout: returns (final State, frames pytree (T, ...), health).
 
         Differentiate with respect to params, state0 or the scene's data leaves (gravity, plate
         motion). `observe(state, params)` picks what each frame records (must be a hashable function).
+        checkpoint: per-frame rematerialization for reverse mode (no cost in a forward run).
+        hand_adjoint: reverse mode through the hand-written derivatives of particle-to-grid and
+          grid-to-particle (`jaxfoam._mpm._p2g_transfer`, `_g2p_transfer`): the same gradient, faster
+          (docs/gradients.md); the rollout is then differentiable in reverse mode only (grad, vjp,
+          jacrev), not in forward mode (jvp, jacfwd). `observable_jacobian(mode="rev")` sets it.
         """
         state0 = self.state0 if state0 is None else state0
         scene = self.scene if scene is None else scene
@@ -239,7 +244,8 @@ class Simulator:
         scene = jax.tree_util.tree_map(lambda a: jnp.asarray(a, self.dtype), scene)
         return _rollout_jit(state0, params, scene, jnp.asarray(self.plan.frame_times, self.dtype),
                             jnp.asarray(self.plan.frame_dts, self.dtype), self.grid, self.plan.substeps,
-                            observe, checkpoint, self.resample, self.fracture, self.colliders, self.sort)
+                            observe, checkpoint, self.resample, self.fracture, self.colliders, self.sort,
+                            hand_adjoint)
 
     def check(self, frames, health) -> None:
         """Raise SimulationError naming the first frame, time, quantity and particle that went bad."""
