@@ -41,7 +41,7 @@ PARAMS = dict(mu=200.0, sigma_y=20.0, eta=5.0, m=0.5)
 FRAME_DT = 0.005  # s between frames (a 200 fps camera)
 # Goals of the gradient issue: reverse <= 4x forward time, jacfwd(4) <= 6x, gradient memory <= 3x.
 GOALS = {"reverse": (4.0, 3.0), "jacfwd": (6.0, None)}
-FULL = dict(dxs=(0.005, 0.0025), frames=10, repeats=3)
+FULL = dict(dxs=(0.005, 0.0025), frames=10, repeats=5)
 QUICK = dict(dxs=(0.01,), frames=3, repeats=2)
 MODES = ("forward", "reverse", "jacfwd", "reverse_nockpt")
 

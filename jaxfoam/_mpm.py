@@ -251,10 +251,17 @@ def _p2g_scatter(grid: Grid, W, dpos, idx0, mvA, A, mass=None):
                                _WINDOW_SCATTER, mode=_IN_BOUNDS)
 
 
-def _window_loop(table, x, idx0, grid: Grid, init, body, derivs=False):
-    """Sum over the 3^d stencil nodes of each particle, gathering the grid rows `table` (G, c) of
-    the last axis's 3 nodes as one window. `body(carry, g (N, c), W (N,), dpos [d x (N,)] m,
-    dW [d x (N,)] 1/m or None) -> carry` runs per node; the first axis's 3 offsets are a scan."""
+def _window_loop(table, x, idx0, grid: Grid, init, body, derivs=False, pos_scale=1.0):
+    """Sum over the 3^d stencil nodes i of each particle p, gathering the grid rows `table` (G, c) of
+    the last axis's 3 nodes as one window: `body(carry, g (N, c), W (N,), dpos, dW) -> carry` runs per
+    node with g = table[i], W = w_ip, dpos = pos_scale (x_i - x_p) (d arrays (N,), m times pos_scale)
+    and, with `derivs`, dW = grad_p w_ip (d arrays (N,), 1/m; else None).
+
+    The sum over offsets runs as a scan over the first axis's 3 offsets (the others unrolled in the
+    body), gathering inside the body: the table is then materialized once as a loop input (fused
+    into one gather, the grid update was recomputed per gathered value), and the carry is
+    materialized once (as an unrolled sum XLA:CPU fused it into every consumer in the constitutive
+    update and recomputed it there)."""
     d = x.shape[1]
     _, fx, w = _stencil(x, grid)
     inv = 1.0 / grid.dx
@@ -269,12 +276,12 @@ def _window_loop(table, x, idx0, grid: Grid, init, body, derivs=False):
         if derivs:  # d wr / d x_j for the axes j = 1 .. d - 1
             dwr = [functools.reduce(operator.mul, [dw[r[k - 1]][:, k] if k == j else ws[k - 1]
                                                    for k in range(1, d)]) for j in range(1, d)]
-        dpr = [(r[k - 1] - fx[:, k]) * grid.dx for k in range(1, d)]
+        dpr = [(r[k - 1] - fx[:, k]) * (grid.dx * pos_scale) for k in range(1, d)]
         geo.append((r, wr, dwr, dpr))
 
     def step(carry, xs):
-        a, wa, dwa = xs
-        dp0 = (a.astype(x.dtype) - fx[:, 0]) * grid.dx
+        a, wa, dwa = xs if derivs else xs + (None,)
+        dp0 = (a.astype(x.dtype) - fx[:, 0]) * (grid.dx * pos_scale)
         ia = idx0 + a * strides[0]
         windows = {}
         for r, wr, dwr, dpr in geo:
@@ -288,9 +295,10 @@ def _window_loop(table, x, idx0, grid: Grid, init, body, derivs=False):
             carry = body(carry, g, wa * wr, [dp0] + dpr, dW)
         return carry, None
 
-    wa = jnp.stack([w[a][:, 0] for a in range(3)])
-    dwa = jnp.stack([dw[a][:, 0] for a in range(3)]) if derivs else jnp.zeros_like(wa)
-    return jax.lax.scan(step, init, (jnp.arange(3, dtype=jnp.int32), wa, dwa))[0]
+    xs = (jnp.arange(3, dtype=jnp.int32), jnp.stack([w[a][:, 0] for a in range(3)]))
+    if derivs:
+        xs += (jnp.stack([dw[a][:, 0] for a in range(3)]),)
+    return jax.lax.scan(step, init, xs)[0]
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
@@ -482,49 +490,18 @@ def _g2p(state: State, grid_v, grid: Grid, idx0=None, hand_adjoint: bool = False
 
 
 def _g2p_impl(x, grid_v, grid: Grid, idx0):
-    d = x.shape[1]
-    base, fx, w = _stencil(x, grid)
-    strides = _strides(grid.shape)
-    rest = list(itertools.product(range(3), repeat=d - 1))
     scale = 4.0 / grid.dx ** 2
-    # Weights and position offsets along the other axes, per remaining offset (static).
-    w_rest = []
-    for r in rest:
-        wr = None
-        for k in range(1, d):
-            wr = w[r[k - 1]][:, k] if wr is None else wr * w[r[k - 1]][:, k]
-        w_rest.append(wr)
-    dp_rest = [[(r[k - 1] - fx[:, k]) * (grid.dx * scale) for k in range(1, d)] for r in rest]
+    d = x.shape[1]
 
-    # The sum over offsets runs as a scan over the first axis's 3 offsets (the others unrolled in
-    # the body), gathering inside the body: the grid velocities are then materialized once as a loop
-    # input (fused into one gather, the grid update was recomputed per gathered value), and the
-    # carry is materialized once (as an unrolled sum XLA:CPU fused it into every consumer in the
-    # constitutive update and recomputed it there).
-    def accumulate(carry, xs):
+    def accumulate(carry, g, W, dp, _):
         v, C = carry
-        a, wa = xs
-        dp0 = (a.astype(x.dtype) - fx[:, 0]) * (grid.dx * scale)
-        ia = idx0 + a * strides[0]
-        windows = {}  # (N, 3, d): the last axis's 3 nodes, one gather per offset of the middle axes
-        for r, wr, dpr in zip(rest, w_rest, dp_rest):
-            mid = r[:-1]
-            if mid not in windows:
-                start = ia + sum(mid[k - 1] * strides[k] for k in range(1, d - 1))
-                windows[mid] = jax.lax.gather(grid_v, start[:, None], _WINDOW_GATHER, (3, d), mode=_IN_BOUNDS)
-            g = windows[mid][:, r[-1], :]
-            wo = wa if wr is None else wa * wr
-            vi = wo[:, None] * g
-            dp = [dp0] + dpr
-            v = v + vi
-            C = tuple(tuple(C[i][j] + vi[:, i] * dp[j] for j in range(d)) for i in range(d))
-        return (v, C), None
+        vi = W[:, None] * g
+        return v + vi, tuple(tuple(C[i][j] + vi[:, i] * dp[j] for j in range(d)) for i in range(d))
 
     zc = jnp.zeros_like(x[:, 0])
     zero = (jnp.zeros_like(x), tuple(tuple(zc for _ in range(d)) for _ in range(d)))
-    wa = jnp.stack([w[a][:, 0] for a in range(3)])
-    (v, C), _ = jax.lax.scan(accumulate, zero, (jnp.arange(3, dtype=jnp.int32), wa))
-    return v, C
+    # C = 4/dx^2 sum_i w_ip v_i (x_i - x_p)^T: the offsets come scaled by 4/dx^2.
+    return _window_loop(grid_v, x, idx0, grid, zero, accumulate, pos_scale=scale)
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
