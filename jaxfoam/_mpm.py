@@ -513,8 +513,9 @@ def _g2p_transfer(grid, x, grid_v, idx0):
 
 
 def _g2p_transfer_fwd(grid, x, grid_v, idx0):
-    v, C = _g2p_impl(x, grid_v, grid, idx0)
-    return (v, C), (x, grid_v, idx0, v)
+    # The residuals are the inputs only: v is summed again in the backward pass's gather loop, so a
+    # rematerialized substep need not redo this transfer (its outputs are saved by name).
+    return _g2p_impl(x, grid_v, grid, idx0), (x, grid_v, idx0)
 
 
 def _g2p_transfer_bwd(grid, res, ct):
@@ -522,7 +523,7 @@ def _g2p_transfer_bwd(grid, res, ct):
     C_p = k sum_i W_ip v_i r_ip^T (k = 4 / dx^2, r_ip = x_i - x_p):
       d v_i = sum_p W_ip (cv_p + k cC_p r_ip)   (a particle-to-grid scatter of that payload),
       d x_p = sum_i grad_p W_ip v_i . (cv_p + k cC_p r_ip) - k cC_p^T v_p."""
-    x, grid_v, idx0, v = res
+    x, grid_v, idx0 = res
     cv, cC = ct
     d = x.shape[1]
     scale = 4.0 / grid.dx ** 2
@@ -531,13 +532,15 @@ def _g2p_transfer_bwd(grid, res, ct):
     cv, cC = hoist((cv, cC), x[0, 0])
     cCs = [[scale * cC[i][j] for j in range(d)] for i in range(d)]
 
-    def body(Dx, g, W, dpos, dW):
+    def body(carry, g, W, dpos, dW):
+        Dx, v = carry
         s = 0.0
         for i in range(d):
             s = s + g[:, i] * (cv[:, i] + sum(cCs[i][j] * dpos[j] for j in range(d)))
-        return tuple(Dx[a] + dW[a] * s for a in range(d))
+        return tuple(Dx[a] + dW[a] * s for a in range(d)), v + W[:, None] * g
 
-    Dx = _window_loop(grid_v, x, idx0, grid, (jnp.zeros_like(x[:, 0]),) * d, body, derivs=True)
+    z = jnp.zeros_like(x[:, 0])
+    Dx, v = _window_loop(grid_v, x, idx0, grid, ((z,) * d, jnp.zeros_like(x)), body, derivs=True)
     # d(x_i - x_p)/dx_p = -1 in C's offsets: sum_i cC_ia (scale sum_k W_k g_k,i) = sum_i cCs_ia v_i.
     dx = jnp.stack([Dx[a] - sum(cCs[i][a] * v[:, i] for i in range(d)) for a in range(d)], axis=1)
     _, fx, w = _stencil(x, grid)
