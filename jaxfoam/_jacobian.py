@@ -14,8 +14,9 @@ floor height) acts through a discrete membership test: its derivative is zero al
 Forward mode (`mode="fwd"`) pushes one tangent per scalar input through the rollout (jacfwd: no tape,
 memory independent of the rollout length, cost grows with the number of inputs): the choice for the
 few material parameters a Gauss-Newton fit wants. Reverse mode (`mode="rev"`) pulls one cotangent per
-scalar output back (jacrev over a checkpointed rollout: memory grows with the number of frames, cost
-with the number of outputs): the choice for a scalar loss or for many inputs (state0 fields).
+scalar output back (pullbacks through a checkpointed rollout, with the transfers' hand-written
+adjoints: memory grows with the number of frames, cost with the number of outputs): the choice for a
+scalar loss or for many inputs (state0 fields).
 """
 from __future__ import annotations
 
@@ -217,8 +218,8 @@ def observable_jacobian(sim: Simulator, params: Params, observable: Callable, wr
       wrt: input names: Params fields ("mu", "sigma_y", "eta", "m", "kappa", "rho"), scene fields
         ("gravity", "floor_friction"), plate motion ("plate0.amplitude", "plate0.frequency", ...),
         initial state ("state0.x", "state0.v", ...). Default: the four fitted parameters.
-      mode: "fwd" (jacfwd: one tangent per scalar input, no tape) or "rev" (jacrev: one cotangent per
-        scalar output, through the rollout's per-frame checkpoints).
+      mode: "fwd" (jacfwd: one tangent per scalar input, no tape) or "rev" (one cotangent per scalar
+        output, through the rollout's per-frame checkpoints and `hand_adjoint=True`).
       state0, scene: override the simulator's initial state and scene.
       observe: per-frame record function passed to the rollout.
       checkpoint: per-frame rematerialization in reverse mode (peak memory ~ frames, not substeps).
