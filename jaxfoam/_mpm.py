@@ -301,13 +301,18 @@ def _window_loop(table, x, idx0, grid: Grid, init, body, derivs=False, pos_scale
     return jax.lax.scan(step, init, xs)[0]
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
-def _p2g_transfer(grid, x, idx0, mvA, A, mass):
-    """`_p2g_scatter` (with the mass column) with a hand-written reverse-mode derivative in x, mvA,
-    A and mass: the grid cotangent is gathered once per stencil window and contracted per particle."""
+def _p2g_impl(grid, x, idx0, mvA, A, mass):
+    """`_p2g_scatter` of the payload (mvA, A, mass) at positions x: grid (G, d + 1)."""
     _, fx, w = _stencil(x, grid)
     W, dpos = _payload_geometry(fx, w, grid)
     return _p2g_scatter(grid, W, dpos, idx0, mvA, A, mass)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _p2g_transfer(grid, x, idx0, mvA, A, mass):
+    """`_p2g_impl` with a hand-written reverse-mode derivative in x, mvA, A and mass: the grid
+    cotangent is gathered once per stencil window and contracted per particle."""
+    return _p2g_impl(grid, x, idx0, mvA, A, mass)
 
 
 def _p2g_transfer_fwd(grid, x, idx0, mvA, A, mass):
@@ -360,7 +365,6 @@ def p2g(state: State, params: Params, grid: Grid, dt, idx0=None,
     and volume and contribute nothing. `state` may be in either form (`to_components`).
     """
     x, d = state.x, state.dim
-    base, fx, w = _stencil(x, grid)
     act = state.active.astype(x.dtype)
     mass = state.mass * act
     vol = state.vol0 * act
@@ -370,15 +374,11 @@ def p2g(state: State, params: Params, grid: Grid, dt, idx0=None,
     k_stress = (-dt * 4.0 / grid.dx ** 2) * vol
     affine = [[k_stress * tau[i][j] + mass * Cc[i][j] for j in range(d)] for i in range(d)]
     mv = [mass * state.v[:, i] for i in range(d)]
-    W, dpos = _payload_geometry(fx, w, grid)
     mvA = jnp.stack(mv, axis=1)
     A = jnp.stack([jnp.stack(row, axis=1) for row in affine], axis=1)
     if idx0 is None:
-        idx0 = _flat_index(base, (0,) * d, grid)
-    if hand_adjoint:
-        grid_mv = _p2g_transfer(grid, x, idx0, mvA, A, mass)
-    else:
-        grid_mv = _p2g_scatter(grid, W, dpos, idx0, mvA, A, mass)
+        idx0 = _flat_index(_stencil(x, grid)[0], (0,) * d, grid)
+    grid_mv = (_p2g_transfer if hand_adjoint else _p2g_impl)(grid, x, idx0, mvA, A, mass)
     # Reverse mode: the grid cotangent is materialized before the gather that transposes this
     # scatter (jaxfoam._fusion), and the grid is kept per substep by the rematerialization policy.
     grid_mv = checkpoint_name(materialize_tangent(grid_mv, dt), "p2g_grid")

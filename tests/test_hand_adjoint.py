@@ -15,8 +15,7 @@ import pytest
 
 import jaxfoam as jf
 from jaxfoam._jacobian import CPU_COMPILER_OPTIONS
-from jaxfoam._mpm import (Grid, _flat_index, _g2p_impl, _g2p_transfer, _p2g_scatter, _p2g_transfer,
-                          _payload_geometry, _stencil)
+from jaxfoam._mpm import Grid, _flat_index, _g2p_impl, _g2p_transfer, _p2g_impl, _p2g_transfer, _stencil
 
 RTOL_AD = 1e-12   # hand-written VJP vs autodiff's transpose: round-off only
 RTOL_FD = 1e-7    # vs central differences (h = 1e-6 of the grid spacing or of the value)
@@ -39,11 +38,7 @@ def _idx0(x, grid):
 
 
 def _p2g_plain(grid, idx0):
-    def f(x, mvA, A, mass):
-        _, fx, w = _stencil(x, grid)
-        W, dpos = _payload_geometry(fx, w, grid)
-        return _p2g_scatter(grid, W, dpos, idx0, mvA, A, mass)
-    return f
+    return lambda x, mvA, A, mass: _p2g_impl(grid, x, idx0, mvA, A, mass)
 
 
 def _g2p_plain(grid, idx0):
