@@ -280,7 +280,7 @@ def collider_force(state: State, params: Params, scene: Scene, grid: Grid, dt, r
     v = safe_div(grid_mv, grid_m[:, None])
     v = v + jnp.where(grid_m[:, None] > 0, dt * scene.gravity.astype(v.dtype)[None, :], 0.0)
     node_x = grid.node_positions(v.dtype)
-    after = apply_colliders(v, node_x, scene, state.t + dt, colliders, grid_m, dt, grid.dx)
+    after = apply_colliders(v, node_x, scene, state.t + dt, colliders, grid_m, dt, grid.dx, grid=grid)
     dp = grid_m[:, None] * (after - v) / dt
     if region is not None:
         dp = jnp.where(region(node_x)[:, None], dp, 0.0)

@@ -44,3 +44,52 @@ def test_walls_and_floor_keep_nan_velocities_visible():
     np.testing.assert_allclose(out[1], [0.0, -0.2])
     np.testing.assert_allclose(out[2], [0.0, 0.0])  # |v_t| 0.4 - 0.5 * 1.0 < 0: sticks
     np.testing.assert_allclose(out[3], [0.4, -1.0])
+
+
+def _box_scene(dim, sticky, floor_y):
+    lo, hi = [0.0] * dim, [0.3] * dim
+    return jf.load_scene({"kind": "drop", "dim": dim, "density": 80.0, "kappa": 2000.0,
+                          "gravity": [0.0, -9.81] + [0.0] * (dim - 2),
+                          "domain": {"min": lo, "max": hi},
+                          "floor": {"y": floor_y, "friction": "sticky" if sticky else 0.7},
+                          "initial_shape": {"type": "box", "min": [0.1] * dim, "max": [0.2] * dim}})
+
+
+def test_floor_on_its_node_layers_equals_the_masked_floor():
+    """grid_update applies the floor to its static node layers (a slice) and the mask form to every
+    node: the same velocities, bit for bit, in 2D and 3D, sticky and with Coulomb friction, for a
+    floor on a node layer and between layers, with NaN velocities kept; and the same derivatives."""
+    rng = np.random.default_rng(3)
+    for dim in (2, 3):
+        for sticky in (False, True):
+            for floor_y in (0.0, 0.0371):
+                scene = _box_scene(dim, sticky, floor_y)
+                grid = jf.make_grid(scene, 0.02)
+                node_x = grid.node_positions(jnp.float64)
+                v = jnp.asarray(rng.normal(size=(grid.num_nodes, dim)))
+                v = v.at[::97].set(jnp.nan)
+                masked = jf.apply_colliders(v, node_x, scene, 0.0)
+                sliced = jf.apply_colliders(v, node_x, scene, 0.0, grid=grid)
+                np.testing.assert_array_equal(np.asarray(sliced), np.asarray(masked))
+                below = np.asarray(node_x[:, 1] <= floor_y)
+                assert below.sum() >= grid.shape[0], "the floor holds at least one node layer"
+                v = jnp.nan_to_num(v)
+                ct = jnp.asarray(rng.normal(size=v.shape))
+                g_mask = jax.grad(lambda u: jnp.sum(ct * jf.apply_colliders(u, node_x, scene, 0.0)))(v)
+                g_grid = jax.grad(lambda u: jnp.sum(ct * jf.apply_colliders(u, node_x, scene, 0.0, grid=grid)))(v)
+                np.testing.assert_array_equal(np.asarray(g_grid), np.asarray(g_mask))
+                # friction: approaching floor nodes lose tangential speed; sticky ones stop
+                out = np.asarray(jf.apply_colliders(v, node_x, scene, 0.0, grid=grid))
+                approaching = below & (np.asarray(v[:, 1]) < 0)
+                tang = [k for k in range(dim) if k != 1]  # away from the side walls, which act on these components
+                interior = approaching & np.all((np.asarray(node_x)[:, tang] > 0.0) & (np.asarray(node_x)[:, tang] < 0.3), axis=1)
+                assert interior.any()
+                np.testing.assert_array_equal(out[interior, 1], 0.0)
+                if sticky:
+                    np.testing.assert_array_equal(out[below & interior], 0.0)
+                else:
+                    vt = np.asarray(v)[interior][:, tang]
+                    speed = np.linalg.norm(vt, axis=1)
+                    new = np.linalg.norm(out[interior][:, tang], axis=1)
+                    np.testing.assert_allclose(new, np.maximum(speed + 0.7 * np.asarray(v)[interior, 1], 0.0),
+                                               rtol=1e-12, atol=1e-15)
