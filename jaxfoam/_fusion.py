@@ -36,14 +36,15 @@ def hoist(tree, t):
 
 @jax.custom_jvp
 def materialize_tangent(a, dt):
-    """Identity on `a`; its tangent (and so, transposed, its cotangent) passes through a `lax.cond`
-    on the runtime predicate isfinite(dt), which XLA:CPU keeps as a fusion boundary. The primal
-    computation is untouched: only derivative programs get the buffer."""
+    """Identity on `a` (an array or a tuple of arrays); its tangent (and so, transposed, its
+    cotangent) passes through a `lax.cond` on the runtime predicate isfinite(dt), which XLA:CPU
+    keeps as a fusion boundary. The primal computation is untouched: only derivative programs get
+    the buffer."""
     return a
 
 
 @materialize_tangent.defjvp
 def _materialize_tangent_jvp(primals, tangents):
     a, dt = primals
-    ta = jax.lax.cond(jnp.isfinite(dt), lambda t: t, lambda t: jnp.zeros_like(t), tangents[0])
+    ta = jax.lax.cond(jnp.isfinite(dt), lambda t: t, lambda t: jax.tree_util.tree_map(jnp.zeros_like, t), tangents[0])
     return a, ta

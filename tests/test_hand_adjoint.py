@@ -37,8 +37,13 @@ def _idx0(x, grid):
     return _flat_index(_stencil(x, grid)[0], (0,) * x.shape[1], grid)
 
 
+def _joined(out):
+    """(momentum (G, d), mass (G,)) as one (G, d + 1) table."""
+    return jnp.concatenate([out[0], out[1][:, None]], axis=1)
+
+
 def _p2g_plain(grid, idx0):
-    return lambda x, mvA, A, mass: _p2g_impl(grid, x, idx0, mvA, A, mass)
+    return lambda x, mvA, A, mass: _joined(_p2g_impl(grid, x, idx0, mvA, A, mass))
 
 
 def _g2p_plain(grid, idx0):
@@ -57,7 +62,7 @@ def test_p2g_adjoint_equals_autodiff_transpose(d):
     idx0 = _idx0(x, grid)
     ct = jnp.asarray(rng.normal(size=(grid.num_nodes, d + 1)))
     _, vjp_ad = jax.vjp(_p2g_plain(grid, idx0), x, mvA, A, mass)
-    out, vjp_hand = jax.vjp(lambda *a: _p2g_transfer(grid, a[0], idx0, *a[1:]), x, mvA, A, mass)
+    out, vjp_hand = jax.vjp(lambda *a: _joined(_p2g_transfer(grid, a[0], idx0, *a[1:])), x, mvA, A, mass)
     np.testing.assert_allclose(out, _p2g_plain(grid, idx0)(x, mvA, A, mass), rtol=0, atol=0)
     for name, a, b in zip(("x", "mv", "A", "mass"), vjp_hand(ct), vjp_ad(ct)):
         assert _rel(a, b) <= RTOL_AD, f"{name}: relative difference {_rel(a, b):.2e}"
@@ -92,7 +97,7 @@ def test_transfer_adjoints_match_central_differences(d):
     rng, grid, x, mvA, A, mass, grid_v = _setup(d, n=12, seed=1)
     idx0 = _idx0(x, grid)
     ct_grid = jnp.asarray(rng.normal(size=(grid.num_nodes, d + 1)))
-    p2g_scalar = lambda *a: jnp.vdot(ct_grid, _p2g_transfer(grid, a[0], idx0, *a[1:]))
+    p2g_scalar = lambda *a: jnp.vdot(ct_grid, _joined(_p2g_transfer(grid, a[0], idx0, *a[1:])))
     args = (x, mvA, A, mass)
     grads = jax.grad(p2g_scalar, argnums=(0, 1, 2, 3))(*args)
     for k, name in enumerate(("x", "mv", "A", "mass")):
