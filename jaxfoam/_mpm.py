@@ -221,34 +221,33 @@ def _comps(a):
     return a if isinstance(a, tuple) else T.comps(a)
 
 
-def _payload_geometry(fx, w, grid: Grid):
-    """Per-offset weights W (K, N) and node-minus-particle offsets dpos (d lists of (K, N), m)."""
-    d = fx.shape[1]
-    offs = _offsets(d)
-    W = _stencil_weights(w, offs)
-    offa = np.asarray(offs)
-    dpos = [(jnp.asarray(offa[:, k], fx.dtype)[:, None] - fx[None, :, k]) * grid.dx for k in range(d)]
-    return W, dpos
-
-
-def _p2g_scatter(grid: Grid, W, dpos, idx0, mvA, A, mass=None):
+def _p2g_scatter(grid: Grid, fx, w, idx0, mvA, A, mass=None):
     """Scatter-add of the APIC payload W_ip (mv_p + A_p (x_i - x_p)) [, W_ip m_p] to the grid:
-    (G, d) or, with mass, (G, d + 1). W (K, N), dpos d x (K, N) m, mvA (N, d), A (N, d, d)."""
+    (G, d) or, with mass, (G, d + 1). fx, w: the particles' `_stencil` fractions and 1D weights;
+    mvA (N, d), A (N, d, d).
+
+    One scatter-add of (3, c) windows: the last axis's 3 nodes per index (_WINDOW_SCATTER), one index
+    per particle and offset of the other axes. The payload is computed directly in that window order,
+    (offset, particle, last-axis node, channel), from (N,) and (N, 3) factors: built per offset as
+    (K, N) arrays and transposed to it, the payload kernel was a strided copy, and the whole scatter
+    ran 1.23x (with mass) / 1.24x (without) slower (2D, 5440 particles, float64)."""
     d = A.shape[-1]
-    # All stencil offsets in one broadcast expression (K, N, c): one loop fusion feeding one
-    # fused scatter-add (written per offset and concatenated, XLA:CPU recomputed the stress per offset).
-    # The per-particle payload is stacked first: XLA:CPU then computes the stress once per particle,
-    # not once per particle and offset.
-    cols = [W * (mvA[None, :, i] + sum(A[None, :, i, k] * dpos[k] for k in range(d))) for i in range(d)]
-    if mass is not None:
-        cols.append(W * mass[None])
-    c = len(cols)
-    # One scatter-add of (3, c) windows: the last axis's 3 nodes per index (_WINDOW_SCATTER).
-    n, lead = W.shape[1], 3 ** (d - 1)
-    vals = jnp.stack(cols, axis=-1)  # (K, N, c); K in _offsets order, last axis fastest
-    vals = vals.reshape(lead, 3, n, c).transpose(0, 2, 1, 3).reshape(lead * n, 3, c)
+    last = d - 1
+    # The last axis's 3 weights and node offsets per particle: (N, 3).
+    w_last = jnp.stack([w[a][:, last] for a in range(3)], axis=1)
+    dp_last = (jnp.arange(3, dtype=fx.dtype)[None, :] - fx[:, last:]) * grid.dx
+    blocks = []
+    for r in _offsets(d - 1):
+        w_r = functools.reduce(operator.mul, [w[r[k]][:, k] for k in range(d - 1)], jnp.ones_like(fx[:, 0]))
+        W = w_r[:, None] * w_last
+        dpos = [((r[k] - fx[:, k]) * grid.dx)[:, None] for k in range(d - 1)] + [dp_last]
+        cols = [W * (mvA[:, i:i + 1] + sum(A[:, i, k:k + 1] * dpos[k] for k in range(d))) for i in range(d)]
+        if mass is not None:
+            cols.append(W * mass[:, None])
+        blocks.append(jnp.stack(cols, axis=-1))  # (N, 3, c)
+    vals = jnp.concatenate(blocks, axis=0)
     idx = jnp.concatenate([idx0 + _offset_index(off + (0,), grid) for off in _offsets(d - 1)])
-    return jax.lax.scatter_add(jnp.zeros((grid.num_nodes, c), W.dtype), idx[:, None], vals,
+    return jax.lax.scatter_add(jnp.zeros((grid.num_nodes, vals.shape[-1]), fx.dtype), idx[:, None], vals,
                                _WINDOW_SCATTER, mode=_IN_BOUNDS)
 
 
@@ -305,9 +304,8 @@ def _window_loop(table, x, idx0, grid: Grid, init, body, derivs=False, pos_scale
 def _p2g_impl(grid, x, idx0, mvA, A, mass):
     """`_p2g_scatter` of the payload (mvA, A, mass) at positions x: (grid momentum (G, d), mass (G,))."""
     _, fx, w = _stencil(x, grid)
-    W, dpos = _payload_geometry(fx, w, grid)
     d = x.shape[1]
-    out = _p2g_scatter(grid, W, dpos, idx0, mvA, A, mass)
+    out = _p2g_scatter(grid, fx, w, idx0, mvA, A, mass)
     return out[:, :d], out[:, d]
 
 
@@ -584,9 +582,8 @@ def _g2p_transfer_bwd(grid, res, ct):
     # d(x_i - x_p)/dx_p = -1 in C's offsets: sum_i cC_ia (scale sum_k W_k g_k,i) = sum_i cCs_ia v_i.
     dx = jnp.stack([Dx[a] - sum(cCs[i][a] * v[:, i] for i in range(d)) for a in range(d)], axis=1)
     _, fx, w = _stencil(x, grid)
-    W, dpos = _payload_geometry(fx, w, grid)
     A = jnp.stack([jnp.stack(row, axis=1) for row in cCs], axis=1)
-    dgrid = _p2g_scatter(grid, W, dpos, idx0, cv, A)
+    dgrid = _p2g_scatter(grid, fx, w, idx0, cv, A)
     return dx, dgrid, None
 
 
