@@ -334,7 +334,9 @@ def _p2g_transfer_bwd(grid, res, ct):
     accumulated per particle in it."""
     x, idx0, mvA, A, mass = res
     d = x.shape[1]
-    ct = jnp.concatenate([ct[0], ct[1][:, None]], axis=1)
+    # One (G, d + 1) table, as a buffer (jaxfoam._fusion): fused into the gather below, XLA:CPU
+    # would evaluate the transposed grid update once per gathered value.
+    ct = hoist(jnp.concatenate([ct[0], ct[1][:, None]], axis=1), x[0, 0])
     z = jnp.zeros_like(x[:, 0])
 
     def body(carry, g, W, dpos, dW):
@@ -386,8 +388,11 @@ def p2g(state: State, params: Params, grid: Grid, dt, idx0=None,
         idx0 = _flat_index(_stencil(x, grid)[0], (0,) * d, grid)
     grid_mv = (_p2g_transfer if hand_adjoint else _p2g_impl)(grid, x, idx0, mvA, A, mass)
     # Reverse mode: the grid cotangent is materialized before the gather that transposes this
-    # scatter (jaxfoam._fusion), and the grid is kept per substep by the rematerialization policy.
-    return checkpoint_name(materialize_tangent(grid_mv, dt), "p2g_grid")
+    # scatter (jaxfoam._fusion; the hand-written adjoint does it itself), and the grid is kept per
+    # substep by the rematerialization policy.
+    if not hand_adjoint:
+        grid_mv = materialize_tangent(grid_mv, dt)
+    return checkpoint_name(grid_mv, "p2g_grid")
 
 
 # max(x, 0), min(x, 0) and clipping as selects (NaN passes through, as with jnp.maximum). The derivative
