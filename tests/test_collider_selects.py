@@ -57,8 +57,9 @@ def _box_scene(dim, sticky, floor_y):
 
 def test_floor_on_its_node_layers_equals_the_masked_floor():
     """grid_update applies the floor to its static node layers (a slice) and the mask form to every
-    node: the same velocities, bit for bit, in 2D and 3D, sticky and with Coulomb friction, for a
-    floor on a node layer and between layers, with NaN velocities kept; and the same derivatives."""
+    node: the same velocities, bit for bit, in 2D and 3D, float64 and float32, sticky and with Coulomb
+    friction, for a floor on a node layer and between layers, with NaN velocities kept; and the same
+    derivatives."""
     rng = np.random.default_rng(3)
     for dim in (2, 3):
         for sticky in (False, True):
@@ -71,6 +72,13 @@ def test_floor_on_its_node_layers_equals_the_masked_floor():
                 masked = jf.apply_colliders(v, node_x, scene, 0.0)
                 sliced = jf.apply_colliders(v, node_x, scene, 0.0, grid=grid)
                 np.testing.assert_array_equal(np.asarray(sliced), np.asarray(masked))
+                # float32 (the scene's leaves cast as a float32 rollout casts them): the layer count comes
+                # from the same float32 node positions
+                v32, x32 = v.astype(jnp.float32), grid.node_positions(jnp.float32)
+                s32 = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float32), scene)
+                out32 = jf.apply_colliders(v32, x32, s32, 0.0, grid=grid)
+                assert out32.dtype == jnp.float32
+                np.testing.assert_array_equal(np.asarray(out32), np.asarray(jf.apply_colliders(v32, x32, s32, 0.0)))
                 below = np.asarray(node_x[:, 1] <= floor_y)
                 assert below.sum() >= grid.shape[0], "the floor holds at least one node layer"
                 v = jnp.nan_to_num(v)
