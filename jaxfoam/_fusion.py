@@ -46,5 +46,6 @@ def materialize_tangent(a, dt):
 @materialize_tangent.defjvp
 def _materialize_tangent_jvp(primals, tangents):
     a, dt = primals
-    ta = jax.lax.cond(jnp.isfinite(dt), lambda t: t, lambda t: jax.tree_util.tree_map(jnp.zeros_like, t), tangents[0])
+    zeros = lambda t: jax.tree_util.tree_map(jnp.zeros_like, t)
+    ta = jax.lax.cond(jnp.isfinite(dt), lambda t: t, zeros, tangents[0])
     return a, ta
