@@ -221,34 +221,70 @@ def _comps(a):
     return a if isinstance(a, tuple) else T.comps(a)
 
 
-def _p2g_scatter(grid: Grid, fx, w, idx0, mvA, A, mass=None):
-    """Scatter-add of the APIC payload W_ip (mv_p + A_p (x_i - x_p)) [, W_ip m_p] to the grid:
-    (G, d) or, with mass, (G, d + 1). fx, w: the particles' `_stencil` fractions and 1D weights;
+def _window_payload(grid: Grid, fx, w, mvA, A, mass=None, tangent=None):
+    """The APIC payload W_ip (mv_p + A_p (x_i - x_p)) [, W_ip m_p] in the windowed scatter's order:
+    (3^(d-1) N, 3, c), c = d or d + 1. fx, w: the particles' `_stencil` fractions and 1D weights;
     mvA (N, d), A (N, d, d).
 
-    One scatter-add of (3, c) windows: the last axis's 3 nodes per index (_WINDOW_SCATTER), one index
-    per particle and offset of the other axes. The payload is computed directly in that window order,
-    (offset, particle, last-axis node, channel), from (N,) and (N, 3) factors: built per offset as
-    (K, N) arrays and transposed to it, the payload kernel was a strided copy, and the whole scatter
-    ran 1.23x (with mass) / 1.24x (without) slower (2D, 5440 particles, float64)."""
+    It is computed directly in that window order, (offset of the other axes, particle, last-axis node,
+    channel), from (N,) and (N, 3) factors: built per offset as (K, N) arrays and transposed to it, the
+    payload kernel was a strided copy, and the whole scatter ran 1.23x (with mass) / 1.24x (without)
+    slower (2D, 5440 particles, float64).
+
+    tangent: optional (dx (N, d) m, dmvA, dA, dmass): then the payload's directional derivative along
+    them is returned instead (`_p2g_impl`'s forward-mode rule), with r_ip = x_i - x_p and
+      d[W (mv + A r)] = W (dmv - A dx + dA r) + (grad_p W . dx) (mv + A r),
+      d[W m] = W dm + (grad_p W . dx) m."""
     d = A.shape[-1]
     last = d - 1
     # The last axis's 3 weights and node offsets per particle: (N, 3).
     w_last = jnp.stack([w[a][:, last] for a in range(3)], axis=1)
     dp_last = (jnp.arange(3, dtype=fx.dtype)[None, :] - fx[:, last:]) * grid.dx
+    if tangent is not None:
+        dx, dmvA, dA, dmass = tangent
+        inv = 1.0 / grid.dx
+        dw = [-(1.5 - fx) * inv, -2.0 * (fx - 1.0) * inv, (fx - 0.5) * inv]  # d w_a / d x, 1/m
+        dw_last = jnp.stack([dw[a][:, last] for a in range(3)], axis=1) * dx[:, last:]
+        # A's share of d r = -dx folded into the momentum: dmv - A dx.
+        dmv_eff = [dmvA[:, i] - sum(A[:, i, k] * dx[:, k] for k in range(d)) for i in range(d)]
     blocks = []
     for r in _offsets(d - 1):
-        w_r = functools.reduce(operator.mul, [w[r[k]][:, k] for k in range(d - 1)], jnp.ones_like(fx[:, 0]))
+        ws = [w[r[k]][:, k] for k in range(d - 1)]
+        w_r = functools.reduce(operator.mul, ws, jnp.ones_like(fx[:, 0]))
         W = w_r[:, None] * w_last
         dpos = [((r[k] - fx[:, k]) * grid.dx)[:, None] for k in range(d - 1)] + [dp_last]
-        cols = [W * (mvA[:, i:i + 1] + sum(A[:, i, k:k + 1] * dpos[k] for k in range(d))) for i in range(d)]
-        if mass is not None:
-            cols.append(W * mass[:, None])
+        P = [mvA[:, i:i + 1] + sum(A[:, i, k:k + 1] * dpos[k] for k in range(d)) for i in range(d)]
+        if tangent is None:
+            cols = [W * P[i] for i in range(d)]
+            if mass is not None:
+                cols.append(W * mass[:, None])
+        else:
+            # grad_p W . dx = (sum over the other axes of their weight derivative) w_last + w_r dw_last.
+            dw_r = sum(functools.reduce(operator.mul, [dw[r[j]][:, j] * dx[:, j] if j == k else ws[j]
+                                                       for j in range(d - 1)], jnp.ones_like(fx[:, 0]))
+                       for k in range(d - 1))
+            G = dw_r[:, None] * w_last + w_r[:, None] * dw_last
+            cols = [W * (dmv_eff[i][:, None] + sum(dA[:, i, k:k + 1] * dpos[k] for k in range(d))) + G * P[i]
+                    for i in range(d)]
+            if mass is not None:
+                cols.append(W * dmass[:, None] + G * mass[:, None])
         blocks.append(jnp.stack(cols, axis=-1))  # (N, 3, c)
-    vals = jnp.concatenate(blocks, axis=0)
+    return jnp.concatenate(blocks, axis=0)
+
+
+def _window_scatter(grid: Grid, idx0, vals):
+    """Scatter-add of a `_window_payload` (3^(d-1) N, 3, c) to the grid: (G, c). One index per particle
+    and offset of the other axes, a (3, c) window of the last axis's 3 nodes each (_WINDOW_SCATTER)."""
+    d = grid.dim
     idx = jnp.concatenate([idx0 + _offset_index(off + (0,), grid) for off in _offsets(d - 1)])
-    return jax.lax.scatter_add(jnp.zeros((grid.num_nodes, vals.shape[-1]), fx.dtype), idx[:, None], vals,
+    return jax.lax.scatter_add(jnp.zeros((grid.num_nodes, vals.shape[-1]), vals.dtype), idx[:, None], vals,
                                _WINDOW_SCATTER, mode=_IN_BOUNDS)
+
+
+def _p2g_scatter(grid: Grid, fx, w, idx0, mvA, A, mass=None):
+    """Scatter-add of the APIC payload W_ip (mv_p + A_p (x_i - x_p)) [, W_ip m_p] to the grid:
+    (G, d) or, with mass, (G, d + 1) (`_window_payload`, `_window_scatter`)."""
+    return _window_scatter(grid, idx0, _window_payload(grid, fx, w, mvA, A, mass))
 
 
 def _window_loop(table, x, idx0, grid: Grid, init, body, derivs=False, pos_scale=1.0):
@@ -301,12 +337,28 @@ def _window_loop(table, x, idx0, grid: Grid, init, body, derivs=False, pos_scale
     return jax.lax.scan(step, init, xs)[0]
 
 
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
 def _p2g_impl(grid, x, idx0, mvA, A, mass):
-    """`_p2g_scatter` of the payload (mvA, A, mass) at positions x: (grid momentum (G, d), mass (G,))."""
+    """`_p2g_scatter` of the payload (mvA, A, mass) at positions x: (grid momentum (G, d), mass (G,)).
+
+    Its forward-mode derivative is written out (`_window_payload` with a tangent): one kernel per
+    stencil block for the tangent payload, which autodiff built from the transposes of the payload's
+    broadcasts and stacks; it transposes for reverse mode like any linear code."""
     _, fx, w = _stencil(x, grid)
     d = x.shape[1]
     out = _p2g_scatter(grid, fx, w, idx0, mvA, A, mass)
     return out[:, :d], out[:, d]
+
+
+@_p2g_impl.defjvp
+def _p2g_impl_jvp(grid, primals, tangents):
+    x, idx0, mvA, A, mass = primals
+    dx, _, dmvA, dA, dmass = tangents
+    _, fx, w = _stencil(x, grid)
+    d = x.shape[1]
+    out = _p2g_scatter(grid, fx, w, idx0, mvA, A, mass)
+    dout = _window_scatter(grid, idx0, _window_payload(grid, fx, w, mvA, A, mass, tangent=(dx, dmvA, dA, dmass)))
+    return (out[:, :d], out[:, d]), (dout[:, :d], dout[:, d])
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))

@@ -1,10 +1,12 @@
 """The hand-written reverse-mode derivatives of particle-to-grid and grid-to-particle
-(`jaxfoam._mpm._p2g_transfer`, `_g2p_transfer`).
+(`jaxfoam._mpm._p2g_transfer`, `_g2p_transfer`), and particle-to-grid's hand-written forward-mode
+rule (`jaxfoam._mpm._p2g_impl`).
 
 Contract: the vector-Jacobian product of each transfer equals the transpose of the transfer's
 automatic derivative (to round-off), and central finite differences of the transfer (float64); a
 rollout differentiated in reverse mode with `hand_adjoint=True` gives the gradient that plain
-autodiff gives; forward mode through it is refused (a custom VJP has no JVP).
+autodiff gives; forward mode through it is refused (a custom VJP has no JVP). The forward-mode rule
+of particle-to-grid equals autodiff's JVP of the same scatter, and its transpose autodiff's VJP.
 """
 import dataclasses
 
@@ -15,7 +17,8 @@ import pytest
 
 import jaxfoam as jf
 from jaxfoam._jacobian import CPU_COMPILER_OPTIONS
-from jaxfoam._mpm import Grid, _flat_index, _g2p_impl, _g2p_transfer, _p2g_impl, _p2g_transfer, _stencil
+from jaxfoam._mpm import (Grid, _flat_index, _g2p_impl, _g2p_transfer, _p2g_impl, _p2g_scatter, _p2g_transfer,
+                          _stencil)
 
 RTOL_AD = 1e-12   # hand-written VJP vs autodiff's transpose: round-off only
 RTOL_FD = 1e-7    # vs central differences (h = 1e-6 of the grid spacing or of the value)
@@ -43,7 +46,11 @@ def _joined(out):
 
 
 def _p2g_plain(grid, idx0):
-    return lambda x, mvA, A, mass: _joined(_p2g_impl(grid, x, idx0, mvA, A, mass))
+    """Particle to grid with no custom derivative rule anywhere (autodiff's reference)."""
+    def f(x, mvA, A, mass):
+        _, fx, w = _stencil(x, grid)
+        return _p2g_scatter(grid, fx, w, idx0, mvA, A, mass)
+    return f
 
 
 def _g2p_plain(grid, idx0):
@@ -66,6 +73,31 @@ def test_p2g_adjoint_equals_autodiff_transpose(d):
     np.testing.assert_allclose(out, _p2g_plain(grid, idx0)(x, mvA, A, mass), rtol=0, atol=0)
     for name, a, b in zip(("x", "mv", "A", "mass"), vjp_hand(ct), vjp_ad(ct)):
         assert _rel(a, b) <= RTOL_AD, f"{name}: relative difference {_rel(a, b):.2e}"
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_p2g_forward_rule_equals_autodiff_jvp_and_transposes(d):
+    """Tangent of the grid along (dx, dmv, dA, dmass): the hand-written rule
+    W (dmv - A dx + dA r) + (grad W . dx)(mv + A r) equals autodiff's JVP to round-off (2D and 3D), and
+    reverse mode through the rule (its transpose) equals autodiff's VJP."""
+    rng, grid, x, mvA, A, mass, _ = _setup(d, seed=2)
+    idx0 = _idx0(x, grid)
+    args = (x, mvA, A, mass)
+    tangents = tuple(jnp.asarray(rng.normal(size=a.shape)) for a in args)
+    ruled = lambda *a: _joined(_p2g_impl(grid, a[0], idx0, *a[1:]))
+    out, t_rule = jax.jvp(ruled, args, tangents)
+    out_ad, t_ad = jax.jvp(_p2g_plain(grid, idx0), args, tangents)
+    np.testing.assert_array_equal(np.asarray(out), np.asarray(out_ad))
+    assert _rel(t_rule, t_ad) <= RTOL_AD, f"tangent: relative difference {_rel(t_rule, t_ad):.2e}"
+    # each input alone (a wrong term in one of them cannot hide behind the others)
+    for k, name in enumerate(("x", "mv", "A", "mass")):
+        only = tuple(t if i == k else jnp.zeros_like(t) for i, t in enumerate(tangents))
+        a, b = jax.jvp(ruled, args, only)[1], jax.jvp(_p2g_plain(grid, idx0), args, only)[1]
+        assert _rel(a, b) <= RTOL_AD, f"{name}: relative difference {_rel(a, b):.2e}"
+    ct = jnp.asarray(rng.normal(size=out.shape))
+    for name, a, b in zip(("x", "mv", "A", "mass"), jax.vjp(ruled, *args)[1](ct),
+                          jax.vjp(_p2g_plain(grid, idx0), *args)[1](ct)):
+        assert _rel(a, b) <= RTOL_AD, f"vjp {name}: relative difference {_rel(a, b):.2e}"
 
 
 @pytest.mark.parametrize("d", [2, 3])
