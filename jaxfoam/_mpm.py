@@ -109,6 +109,12 @@ def _stencil(x, grid: Grid):
     return jnp.clip(base.astype(jnp.int32), 0, hi[None, :]), fx, w
 
 
+def _stencil_derivs(fx, grid: Grid):
+    """Position derivatives of `_stencil`'s 1D weights: list of 3 arrays (N, d), d w_a / d x, 1/m."""
+    inv = 1.0 / grid.dx
+    return [-(1.5 - fx) * inv, -2.0 * (fx - 1.0) * inv, (fx - 0.5) * inv]
+
+
 def _offsets(d):
     return list(itertools.product(range(3), repeat=d))
 
@@ -242,8 +248,7 @@ def _window_payload(grid: Grid, fx, w, mvA, A, mass=None, tangent=None):
     dp_last = (jnp.arange(3, dtype=fx.dtype)[None, :] - fx[:, last:]) * grid.dx
     if tangent is not None:
         dx, dmvA, dA, dmass = tangent
-        inv = 1.0 / grid.dx
-        dw = [-(1.5 - fx) * inv, -2.0 * (fx - 1.0) * inv, (fx - 0.5) * inv]  # d w_a / d x, 1/m
+        dw = _stencil_derivs(fx, grid)
         dw_last = jnp.stack([dw[a][:, last] for a in range(3)], axis=1) * dx[:, last:]
         # A's share of d r = -dx folded into the momentum: dmv - A dx.
         dmv_eff = [dmvA[:, i] - sum(A[:, i, k] * dx[:, k] for k in range(d)) for i in range(d)]
@@ -300,8 +305,7 @@ def _window_loop(table, x, idx0, grid: Grid, init, body, derivs=False, pos_scale
     update and recomputed it there)."""
     d = x.shape[1]
     _, fx, w = _stencil(x, grid)
-    inv = 1.0 / grid.dx
-    dw = [-(1.5 - fx) * inv, -2.0 * (fx - 1.0) * inv, (fx - 0.5) * inv] if derivs else None
+    dw = _stencil_derivs(fx, grid) if derivs else None
     strides = _strides(grid.shape)
     rest = list(itertools.product(range(3), repeat=d - 1))
     geo = []
