@@ -292,53 +292,79 @@ def _p2g_scatter(grid: Grid, fx, w, idx0, mvA, A, mass=None):
     return _window_scatter(grid, idx0, _window_payload(grid, fx, w, mvA, A, mass))
 
 
-def _window_loop(table, x, idx0, grid: Grid, init, body, derivs=False, pos_scale=1.0):
+def _window_loop(table, x, idx0, grid: Grid, init, body, pos_scale=1.0):
     """Sum over the 3^d stencil nodes i of each particle p, gathering the grid rows `table` (G, c) of
-    the last axis's 3 nodes as one window: `body(carry, g (N, c), W (N,), dpos, dW) -> carry` runs per
-    node with g = table[i], W = w_ip, dpos = pos_scale (x_i - x_p) (d arrays (N,), m times pos_scale)
-    and, with `derivs`, dW = grad_p w_ip (d arrays (N,), 1/m; else None).
+    the last axis's 3 nodes as one window: `body(carry, g (N, c), W (N,), dpos) -> carry` runs per
+    node with g = table[i], W = w_ip and dpos = pos_scale (x_i - x_p) (d arrays (N,), m times
+    pos_scale). Used by the forward grid-to-particle transfer.
 
     The sum over offsets runs as a scan over the first axis's 3 offsets (the others unrolled in the
     body), gathering inside the body: the table is then materialized once as a loop input (fused
     into one gather, the grid update was recomputed per gathered value), and the carry is
     materialized once (as an unrolled sum XLA:CPU fused it into every consumer in the constitutive
-    update and recomputed it there)."""
+    update and recomputed it there). The sum unrolled with its results as buffers (`_window_sum`)
+    ran this transfer 1.14x faster in 2D float64 but 0.94-1.02x in 2D float32, where its gathers
+    and sums took 217-257 us per step against 133-163 (bench_step's 2D case), so the forward keeps
+    the loop."""
     d = x.shape[1]
     _, fx, w = _stencil(x, grid)
-    dw = _stencil_derivs(fx, grid) if derivs else None
     strides = _strides(grid.shape)
-    rest = list(itertools.product(range(3), repeat=d - 1))
     geo = []
-    for r in rest:
-        ws = [w[r[k - 1]][:, k] for k in range(1, d)]
-        wr = functools.reduce(operator.mul, ws)
-        dwr = None
-        if derivs:  # d wr / d x_j for the axes j = 1 .. d - 1
-            dwr = [functools.reduce(operator.mul, [dw[r[k - 1]][:, k] if k == j else ws[k - 1]
-                                                   for k in range(1, d)]) for j in range(1, d)]
+    for r in itertools.product(range(3), repeat=d - 1):
+        wr = functools.reduce(operator.mul, [w[r[k - 1]][:, k] for k in range(1, d)])
         dpr = [(r[k - 1] - fx[:, k]) * (grid.dx * pos_scale) for k in range(1, d)]
-        geo.append((r, wr, dwr, dpr))
+        geo.append((r, wr, dpr))
 
     def step(carry, xs):
-        a, wa, dwa = xs if derivs else xs + (None,)
+        a, wa = xs
         dp0 = (a.astype(x.dtype) - fx[:, 0]) * (grid.dx * pos_scale)
         ia = idx0 + a * strides[0]
         windows = {}
-        for r, wr, dwr, dpr in geo:
+        for r, wr, dpr in geo:
             mid = r[:-1]
             if mid not in windows:
                 start = ia + sum(mid[k - 1] * strides[k] for k in range(1, d - 1))
                 windows[mid] = jax.lax.gather(table, start[:, None], _WINDOW_GATHER, (3, table.shape[1]),
                                               mode=_IN_BOUNDS)
-            g = windows[mid][:, r[-1], :]
-            dW = None if dwr is None else [dwa * wr] + [wa * v for v in dwr]
-            carry = body(carry, g, wa * wr, [dp0] + dpr, dW)
+            carry = body(carry, windows[mid][:, r[-1], :], wa * wr, [dp0] + dpr)
         return carry, None
 
     xs = (jnp.arange(3, dtype=jnp.int32), jnp.stack([w[a][:, 0] for a in range(3)]))
-    if derivs:
-        xs += (jnp.stack([dw[a][:, 0] for a in range(3)]),)
     return jax.lax.scan(step, init, xs)[0]
+
+
+def _window_sum(table, x, idx0, grid: Grid, init, body):
+    """The hand-written adjoints' sum over the 3^d stencil nodes i of each particle p:
+    `body(carry, g (N, c), W (N,), dpos, dW) -> carry` runs per node with g = table[i] (`table`
+    (G, c), a buffer), W = w_ip, dpos = x_i - x_p (d arrays (N,), m) and dW = grad_p w_ip (d arrays
+    (N,), 1/m); the rows of the last axis's 3 nodes are gathered as one window.
+
+    Unrolled over all 3^d nodes, with the summed values returned as buffers (`hoist`): XLA:CPU then
+    computes each of them in one kernel over the particles. As a scan over the first axis's offsets
+    (`_window_loop`), every accumulator was a kernel per iteration, 27 kernels per substep for the
+    9 sums of the particle-to-grid adjoint in 2D; unrolled, the transposed transfers of a reverse-mode
+    substep took 1036 instead of 1377 us (p2g 673 -> 439, g2p 337 -> 284; 2D hanging plate, dx 2.5
+    mm, float64). Without the buffers XLA fused the sums into their consumers and recomputed them
+    there (p2g's adjoint back to 681 us)."""
+    d = x.shape[1]
+    _, fx, w = _stencil(x, grid)
+    dw = _stencil_derivs(fx, grid)
+    strides = _strides(grid.shape)
+    windows = {}
+    carry = init
+    for off in _offsets(d):
+        mid = off[:-1]
+        if mid not in windows:
+            start = idx0 + sum(mid[k] * strides[k] for k in range(d - 1))
+            windows[mid] = jax.lax.gather(table, start[:, None], _WINDOW_GATHER, (3, table.shape[1]),
+                                          mode=_IN_BOUNDS)
+        ws = [w[off[k]][:, k] for k in range(d)]
+        dW = [functools.reduce(operator.mul, [dw[off[k]][:, k] if k == j else ws[k] for k in range(d)])
+              for j in range(d)]
+        dpos = [(off[k] - fx[:, k]) * grid.dx for k in range(d)]
+        carry = body(carry, windows[mid][:, off[-1], :], functools.reduce(operator.mul, ws), dpos, dW)
+    leaves, treedef = jax.tree_util.tree_flatten(carry)
+    return jax.tree_util.tree_unflatten(treedef, list(hoist(tuple(leaves), x[0, 0])))
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
@@ -407,7 +433,7 @@ def _p2g_transfer_bwd(grid, res, ct):
         return G0, G1, Dx
 
     init = ((z,) * (d + 1), tuple((z,) * d for _ in range(d)), (z,) * d)
-    G0, G1, Dx = _window_loop(ct, x, idx0, grid, init, body, derivs=True)
+    G0, G1, Dx = _window_sum(ct, x, idx0, grid, init, body)
     dmv = jnp.stack(G0[:d], axis=1)
     dA = jnp.stack([jnp.stack(row, axis=1) for row in G1], axis=1)
     # d(x_i - x_p)/dx_p = -1: the affine term's share.
@@ -592,7 +618,7 @@ def _g2p_impl(x, grid_v, grid: Grid, idx0):
     scale = 4.0 / grid.dx ** 2
     d = x.shape[1]
 
-    def accumulate(carry, g, W, dp, _):
+    def accumulate(carry, g, W, dp):
         v, C = carry
         vi = W[:, None] * g
         return v + vi, tuple(tuple(C[i][j] + vi[:, i] * dp[j] for j in range(d)) for i in range(d))
@@ -612,7 +638,7 @@ def _g2p_transfer(grid, x, grid_v, idx0):
 
 
 def _g2p_transfer_fwd(grid, x, grid_v, idx0):
-    # The residuals are the inputs only: v is summed again in the backward pass's gather loop, so a
+    # The residuals are the inputs only: v is summed again in the backward pass's stencil sum, so a
     # rematerialized substep need not redo this transfer (its outputs are saved by name).
     return _g2p_impl(x, grid_v, grid, idx0), (x, grid_v, idx0)
 
@@ -639,7 +665,7 @@ def _g2p_transfer_bwd(grid, res, ct):
         return tuple(Dx[a] + dW[a] * s for a in range(d)), v + W[:, None] * g
 
     z = jnp.zeros_like(x[:, 0])
-    Dx, v = _window_loop(grid_v, x, idx0, grid, ((z,) * d, jnp.zeros_like(x)), body, derivs=True)
+    Dx, v = _window_sum(grid_v, x, idx0, grid, ((z,) * d, jnp.zeros_like(x)), body)
     # d(x_i - x_p)/dx_p = -1 in C's offsets: sum_i cC_ia (scale sum_k W_k g_k,i) = sum_i cCs_ia v_i.
     dx = jnp.stack([Dx[a] - sum(cCs[i][a] * v[:, i] for i in range(d)) for a in range(d)], axis=1)
     _, fx, w = _stencil(x, grid)
