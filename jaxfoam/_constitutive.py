@@ -157,7 +157,6 @@ def _solve_rate(a, b, eta, m):
     return jnp.exp(z)
 
 
-@jax.custom_jvp
 def hb_rate(a, b, eta, m):
     """Plastic rate gamma (1/s) solving eta gamma^m + a gamma = b (model.md, the gamma form of eq. 14).
 
@@ -165,9 +164,14 @@ def hb_rate(a, b, eta, m):
       a: 2 mubar dt, Pa s (> 0).
       b: yield excess s_pre - sqrt(2/3) sigma_y, Pa; gamma = 0 where b <= 0 (elastic).
       eta: consistency, Pa s^m (>= 0).  m: exponent (> 0).
-    Derivatives come from the implicit function theorem (see `_hb_rate_jvp`); the iterations are
+    Derivatives come from the implicit function theorem (see `_rate_jvp`); the iterations are
     never differentiated.
     """
+    return _rate_and_visc(a, b, eta, m)[0]
+
+
+def _rate(a, b, eta, m):
+    """`hb_rate`'s value: the solve where b > 0, 0 elsewhere (no derivative rule of its own)."""
     yielding = b > 0
     b_safe = jnp.where(yielding, b, 1.0)
     a_safe = jnp.where(a > 0, a, 1.0)
@@ -175,9 +179,26 @@ def hb_rate(a, b, eta, m):
     return jnp.where(yielding, gamma, 0.0)
 
 
-@hb_rate.defjvp
-def _hb_rate_jvp(primals, tangents):
-    """Implicit-function derivative of gamma.
+def _visc_of(gamma, P):
+    """The viscous stress eta gamma^m, Pa, from P = eta gamma^m formed at a safe argument: P where
+    gamma is a normal number, inf elsewhere (the return map then takes its other form of s)."""
+    return jnp.where(gamma >= jnp.finfo(gamma.dtype).tiny, P, jnp.inf)
+
+
+@jax.custom_jvp
+def _rate_and_visc(a, b, eta, m):
+    """(gamma, visc): `hb_rate` and the viscous stress eta gamma^m (Pa; inf where gamma is 0 or
+    subnormal), which the return map needs too. One derivative rule gives both, so a derivative
+    program evaluates ln(gamma) and gamma^m once, not once for each (two of the return map's ~13
+    transcendentals per particle)."""
+    gamma = _rate(a, b, eta, m)
+    g = jnp.where(gamma > 0, gamma, 1.0)
+    return gamma, _visc_of(gamma, eta * jnp.exp(m * jnp.log(g)))
+
+
+@_rate_and_visc.defjvp
+def _rate_jvp(primals, tangents):
+    """Implicit-function derivative of gamma, and with it that of visc = eta gamma^m.
 
     With P = eta gamma^m and Q = a gamma (P + Q = b), differentiating h = 0 gives
       dgamma = -gamma (gamma^m deta + P ln(gamma) dm + gamma da - db) / (m P + Q).
@@ -186,26 +207,31 @@ def _hb_rate_jvp(primals, tangents):
     regime (b <= 0) gamma = 0 and all derivatives are 0: the derivative at the yield surface is the
     one-sided limit from the elastic side (d gamma / d b jumps there to 0+ for m < 1, 1/(eta + a)
     for m = 1, 1/a for m > 1 on the plastic side).
+    visc: d(eta gamma^m) = gamma^m deta + P ln(gamma) dm + m P dgamma / gamma, with
+    dgamma / gamma = -num / (m P + Q) (no division by gamma); 0 where visc is the constant inf.
     """
     a, b, eta, m = primals
     da, db, deta, dm = tangents
     # Named: reverse mode's per-substep rematerialization keeps the rate (jaxfoam._simulate.REMAT_SAVED)
     # instead of re-running the solve before the backward pass.
-    gamma = checkpoint_name(hb_rate(a, b, eta, m), "hb_gamma")
+    gamma = checkpoint_name(_rate(a, b, eta, m), "hb_gamma")
     # gamma > 0 too: just past yield with m < 1, gamma = (b/eta)^(1/m) can underflow to 0 (float32,
     # m ~ 0.1), where P ln(gamma) would be 0 * -inf = NaN; the derivative of an underflowed 0 is 0.
     yielding = (b > 0) & (gamma > 0)
     g = jnp.where(yielding, gamma, 1.0)
-    gm = jnp.exp(m * jnp.log(g))  # gamma^m, safe: g > 0
+    lg = jnp.log(g)
+    gm = jnp.exp(m * lg)  # gamma^m, safe: g > 0
     P = eta * gm
     Q = a * g
     denom = m * P + Q
     denom = jnp.where(yielding & (denom > 0), denom, 1.0)
-    num = gm * deta + P * jnp.log(g) * dm + g * da - db
+    num = gm * deta + P * lg * dm + g * da - db
     # gamma / denom = 1 / (m eta gamma^(m-1) + a) <= 1 / a first: the product gamma * num would
     # underflow for tiny gamma (forward mode gave 0 where reverse mode gave the right value).
     dgamma = jnp.where(yielding, -(g / denom) * num, 0.0)
-    return gamma, dgamma
+    visc = _visc_of(gamma, P)
+    dvisc = jnp.where(jnp.isfinite(visc), gm * deta + P * lg * dm - (m * P) * (num / denom), 0.0)
+    return (gamma, visc), (dgamma, dvisc)
 
 
 def return_map(bbar_e: jax.Array, f: jax.Array, params: Params, dt) -> tuple[jax.Array, jax.Array]:
@@ -255,13 +281,11 @@ def _return_map_components(bc, f3, params, dt):
     b = s_pre - SQRT_2_3 * params.sigma_y
     yielding = b > 0
     mubar = params.mu * tr3
-    gamma = hb_rate(2.0 * mubar * dt, b, params.eta, params.m)
+    gamma, visc = _rate_and_visc(2.0 * mubar * dt, b, params.eta, params.m)
     a_gamma = 2.0 * mubar * dt * gamma
     # h = 0 gives s = s_pre - a gamma = s_Y + eta gamma^m: take the form with the smaller correction,
     # so s keeps full relative precision also far below s_pre (eta -> 0, s_pre >> s_Y). visc is only
-    # formed for normal gamma (its reverse-mode 1/gamma stays finite); else the first form is used.
-    g_ok = gamma >= jnp.finfo(gamma.dtype).tiny
-    visc = jnp.where(g_ok, params.eta * jnp.exp(params.m * jnp.log(jnp.where(g_ok, gamma, 1.0))), jnp.inf)
+    # finite for normal gamma (its derivative stays finite); else the first form is used.
     s_plastic = jnp.where(a_gamma <= visc, s_pre - a_gamma, SQRT_2_3 * params.sigma_y + visc)
     s_new = jnp.where(yielding, s_plastic, s_pre)
     # 1 when elastic: the unused eq. 16 branch must stay finite (its det could be < 0), else its NaN
