@@ -292,63 +292,27 @@ def _p2g_scatter(grid: Grid, fx, w, idx0, mvA, A, mass=None):
     return _window_scatter(grid, idx0, _window_payload(grid, fx, w, mvA, A, mass))
 
 
-def _window_loop(table, x, idx0, grid: Grid, init, body, pos_scale=1.0):
+def _window_sum(table, x, idx0, grid: Grid, init, body, derivs=False, pos_scale=1.0):
     """Sum over the 3^d stencil nodes i of each particle p, gathering the grid rows `table` (G, c) of
-    the last axis's 3 nodes as one window: `body(carry, g (N, c), W (N,), dpos) -> carry` runs per
-    node with g = table[i], W = w_ip and dpos = pos_scale (x_i - x_p) (d arrays (N,), m times
-    pos_scale). Used by the forward grid-to-particle transfer.
-
-    The sum over offsets runs as a scan over the first axis's 3 offsets (the others unrolled in the
-    body), gathering inside the body: the table is then materialized once as a loop input (fused
-    into one gather, the grid update was recomputed per gathered value), and the carry is
-    materialized once (as an unrolled sum XLA:CPU fused it into every consumer in the constitutive
-    update and recomputed it there). The sum unrolled with its results as buffers (`_window_sum`)
-    ran this transfer 1.14x faster in 2D float64 but 0.94-1.02x in 2D float32, where its gathers
-    and sums took 217-257 us per step against 133-163 (bench_step's 2D case), so the forward keeps
-    the loop."""
-    d = x.shape[1]
-    _, fx, w = _stencil(x, grid)
-    strides = _strides(grid.shape)
-    geo = []
-    for r in itertools.product(range(3), repeat=d - 1):
-        wr = functools.reduce(operator.mul, [w[r[k - 1]][:, k] for k in range(1, d)])
-        dpr = [(r[k - 1] - fx[:, k]) * (grid.dx * pos_scale) for k in range(1, d)]
-        geo.append((r, wr, dpr))
-
-    def step(carry, xs):
-        a, wa = xs
-        dp0 = (a.astype(x.dtype) - fx[:, 0]) * (grid.dx * pos_scale)
-        ia = idx0 + a * strides[0]
-        windows = {}
-        for r, wr, dpr in geo:
-            mid = r[:-1]
-            if mid not in windows:
-                start = ia + sum(mid[k - 1] * strides[k] for k in range(1, d - 1))
-                windows[mid] = jax.lax.gather(table, start[:, None], _WINDOW_GATHER, (3, table.shape[1]),
-                                              mode=_IN_BOUNDS)
-            carry = body(carry, windows[mid][:, r[-1], :], wa * wr, [dp0] + dpr)
-        return carry, None
-
-    xs = (jnp.arange(3, dtype=jnp.int32), jnp.stack([w[a][:, 0] for a in range(3)]))
-    return jax.lax.scan(step, init, xs)[0]
-
-
-def _window_sum(table, x, idx0, grid: Grid, init, body):
-    """The hand-written adjoints' sum over the 3^d stencil nodes i of each particle p:
-    `body(carry, g (N, c), W (N,), dpos, dW) -> carry` runs per node with g = table[i] (`table`
-    (G, c), a buffer), W = w_ip, dpos = x_i - x_p (d arrays (N,), m) and dW = grad_p w_ip (d arrays
-    (N,), 1/m); the rows of the last axis's 3 nodes are gathered as one window.
+    the last axis's 3 nodes as one window: `body(carry, g (N, c), W (N,), dpos[, dW]) -> carry` runs
+    per node with g = table[i], W = w_ip, dpos = pos_scale (x_i - x_p) (d arrays (N,), m times
+    pos_scale) and, with `derivs`, dW = grad_p w_ip (d arrays (N,), 1/m). `table` should be a
+    buffer (`hoist`): XLA:CPU fuses its producer (the grid update) into the gathers otherwise and
+    evaluates it once per gathered value. Used by grid-to-particle and by the hand-written adjoints.
 
     Unrolled over all 3^d nodes, with the summed values returned as buffers (`hoist`): XLA:CPU then
-    computes each of them in one kernel over the particles. As a scan over the first axis's offsets
-    (`_window_loop`), every accumulator was a kernel per iteration, 27 kernels per substep for the
-    9 sums of the particle-to-grid adjoint in 2D; unrolled, the transposed transfers of a reverse-mode
-    substep took 1036 instead of 1377 us (p2g 673 -> 439, g2p 337 -> 284; 2D hanging plate, dx 2.5
-    mm, float64). Without the buffers XLA fused the sums into their consumers and recomputed them
-    there (p2g's adjoint back to 681 us)."""
+    computes each of them in one kernel over the particles; without the buffers it fused the sums
+    into their consumers and recomputed them there. The earlier form, a scan over the first axis's
+    3 offsets with the other axes unrolled in its body, made every accumulator a kernel per
+    iteration (27 kernels per substep for the 9 sums of the particle-to-grid adjoint in 2D).
+    Measured against it (same process, float64 unless noted): the transposed transfers of a
+    reverse-mode substep 1036 instead of 1377 us (p2g 673 -> 439, g2p 337 -> 284; 2D hanging plate,
+    dx 2.5 mm), reverse mode 1.115x (that scene, 10 frames) and 1.049x (3D, dx 8 mm); the forward
+    step (bench_step's cases) 1.13x in 2D, 1.07x in 3D, 1.06x in 3D float32 and 0.98-1.05x (three
+    runs) in 2D float32."""
     d = x.shape[1]
     _, fx, w = _stencil(x, grid)
-    dw = _stencil_derivs(fx, grid)
+    dw = _stencil_derivs(fx, grid) if derivs else None
     strides = _strides(grid.shape)
     windows = {}
     carry = init
@@ -359,10 +323,12 @@ def _window_sum(table, x, idx0, grid: Grid, init, body):
             windows[mid] = jax.lax.gather(table, start[:, None], _WINDOW_GATHER, (3, table.shape[1]),
                                           mode=_IN_BOUNDS)
         ws = [w[off[k]][:, k] for k in range(d)]
-        dW = [functools.reduce(operator.mul, [dw[off[k]][:, k] if k == j else ws[k] for k in range(d)])
-              for j in range(d)]
-        dpos = [(off[k] - fx[:, k]) * grid.dx for k in range(d)]
-        carry = body(carry, windows[mid][:, off[-1], :], functools.reduce(operator.mul, ws), dpos, dW)
+        dpos = [(off[k] - fx[:, k]) * (grid.dx * pos_scale) for k in range(d)]
+        extra = ()
+        if derivs:
+            extra = ([functools.reduce(operator.mul, [dw[off[k]][:, k] if k == j else ws[k] for k in range(d)])
+                      for j in range(d)],)
+        carry = body(carry, windows[mid][:, off[-1], :], functools.reduce(operator.mul, ws), dpos, *extra)
     leaves, treedef = jax.tree_util.tree_flatten(carry)
     return jax.tree_util.tree_unflatten(treedef, list(hoist(tuple(leaves), x[0, 0])))
 
@@ -433,7 +399,7 @@ def _p2g_transfer_bwd(grid, res, ct):
         return G0, G1, Dx
 
     init = ((z,) * (d + 1), tuple((z,) * d for _ in range(d)), (z,) * d)
-    G0, G1, Dx = _window_sum(ct, x, idx0, grid, init, body)
+    G0, G1, Dx = _window_sum(ct, x, idx0, grid, init, body, derivs=True)
     dmv = jnp.stack(G0[:d], axis=1)
     dA = jnp.stack([jnp.stack(row, axis=1) for row in G1], axis=1)
     # d(x_i - x_p)/dx_p = -1: the affine term's share.
@@ -625,8 +591,9 @@ def _g2p_impl(x, grid_v, grid: Grid, idx0):
 
     zc = jnp.zeros_like(x[:, 0])
     zero = (jnp.zeros_like(x), tuple(tuple(zc for _ in range(d)) for _ in range(d)))
-    # C = 4/dx^2 sum_i w_ip v_i (x_i - x_p)^T: the offsets come scaled by 4/dx^2.
-    return _window_loop(grid_v, x, idx0, grid, zero, accumulate, pos_scale=scale)
+    # C = 4/dx^2 sum_i w_ip v_i (x_i - x_p)^T: the offsets come scaled by 4/dx^2. The grid velocities
+    # as a buffer (`_window_sum`).
+    return _window_sum(hoist(grid_v, x[0, 0]), x, idx0, grid, zero, accumulate, pos_scale=scale)
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
@@ -665,7 +632,7 @@ def _g2p_transfer_bwd(grid, res, ct):
         return tuple(Dx[a] + dW[a] * s for a in range(d)), v + W[:, None] * g
 
     z = jnp.zeros_like(x[:, 0])
-    Dx, v = _window_sum(grid_v, x, idx0, grid, ((z,) * d, jnp.zeros_like(x)), body)
+    Dx, v = _window_sum(grid_v, x, idx0, grid, ((z,) * d, jnp.zeros_like(x)), body, derivs=True)
     # d(x_i - x_p)/dx_p = -1 in C's offsets: sum_i cC_ia (scale sum_k W_k g_k,i) = sum_i cCs_ia v_i.
     dx = jnp.stack([Dx[a] - sum(cCs[i][a] * v[:, i] for i in range(d)) for a in range(d)], axis=1)
     _, fx, w = _stencil(x, grid)
