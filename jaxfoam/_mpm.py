@@ -40,6 +40,13 @@ _WINDOW_SCATTER = jax.lax.ScatterDimensionNumbers(update_window_dims=(1, 2), ins
                                                   scatter_dims_to_operand_dims=(0,))
 _WINDOW_GATHER = jax.lax.GatherDimensionNumbers(offset_dims=(1, 2), collapsed_slice_dims=(), start_index_map=(0,))
 _IN_BOUNDS = jax.lax.GatherScatterMode.PROMISE_IN_BOUNDS
+# Forward grid-to-particle in 2D float32 as a scan over the first axis's stencil offsets
+# (`_window_loop`) instead of the unrolled sum (`_window_sum`) of every other case. Unrolled, the 2D
+# float32 step ran 0.98-1.04x in same-process A/Bs, but the same-run Taichi ratio (bench_peer, median
+# of 31 rounds) fell from 1.04 and 1.08 to 0.97, 0.98 and 1.01 (runs in the same hour), and its g2p
+# kernels took 180-257 us per step against 130-163 for the loop (bench_step's 2D case); with the
+# loop kept there, 1.09 and 1.05. Unrolled elsewhere: 2D float64 1.13x, 3D 1.06-1.07x.
+G2P_LOOP_2D_FLOAT32 = True
 
 
 @dataclasses.dataclass(frozen=True)
@@ -292,13 +299,52 @@ def _p2g_scatter(grid: Grid, fx, w, idx0, mvA, A, mass=None):
     return _window_scatter(grid, idx0, _window_payload(grid, fx, w, mvA, A, mass))
 
 
+def _window_loop(table, x, idx0, grid: Grid, init, body, pos_scale=1.0):
+    """Sum over the 3^d stencil nodes i of each particle p, gathering the grid rows `table` (G, c) of
+    the last axis's 3 nodes as one window: `body(carry, g (N, c), W (N,), dpos) -> carry` runs per
+    node with g = table[i], W = w_ip and dpos = pos_scale (x_i - x_p) (d arrays (N,), m times
+    pos_scale). Used by the forward grid-to-particle transfer in 2D float32 (G2P_LOOP_2D_FLOAT32).
+
+    The sum over offsets runs as a scan over the first axis's 3 offsets (the others unrolled in the
+    body), gathering inside the body: the table is then materialized once as a loop input (fused
+    into one gather, the grid update was recomputed per gathered value), and the carry is
+    materialized once (as an unrolled sum XLA:CPU fused it into every consumer in the constitutive
+        update and recomputed it there)."""
+    d = x.shape[1]
+    _, fx, w = _stencil(x, grid)
+    strides = _strides(grid.shape)
+    geo = []
+    for r in itertools.product(range(3), repeat=d - 1):
+        wr = functools.reduce(operator.mul, [w[r[k - 1]][:, k] for k in range(1, d)])
+        dpr = [(r[k - 1] - fx[:, k]) * (grid.dx * pos_scale) for k in range(1, d)]
+        geo.append((r, wr, dpr))
+
+    def step(carry, xs):
+        a, wa = xs
+        dp0 = (a.astype(x.dtype) - fx[:, 0]) * (grid.dx * pos_scale)
+        ia = idx0 + a * strides[0]
+        windows = {}
+        for r, wr, dpr in geo:
+            mid = r[:-1]
+            if mid not in windows:
+                start = ia + sum(mid[k - 1] * strides[k] for k in range(1, d - 1))
+                windows[mid] = jax.lax.gather(table, start[:, None], _WINDOW_GATHER, (3, table.shape[1]),
+                                              mode=_IN_BOUNDS)
+            carry = body(carry, windows[mid][:, r[-1], :], wa * wr, [dp0] + dpr)
+        return carry, None
+
+    xs = (jnp.arange(3, dtype=jnp.int32), jnp.stack([w[a][:, 0] for a in range(3)]))
+    return jax.lax.scan(step, init, xs)[0]
+
+
 def _window_sum(table, x, idx0, grid: Grid, init, body, derivs=False, pos_scale=1.0):
     """Sum over the 3^d stencil nodes i of each particle p, gathering the grid rows `table` (G, c) of
     the last axis's 3 nodes as one window: `body(carry, g (N, c), W (N,), dpos[, dW]) -> carry` runs
     per node with g = table[i], W = w_ip, dpos = pos_scale (x_i - x_p) (d arrays (N,), m times
     pos_scale) and, with `derivs`, dW = grad_p w_ip (d arrays (N,), 1/m). `table` should be a
     buffer (`hoist`): XLA:CPU fuses its producer (the grid update) into the gathers otherwise and
-    evaluates it once per gathered value. Used by grid-to-particle and by the hand-written adjoints.
+    evaluates it once per gathered value. Used by the hand-written adjoints and by grid-to-particle
+    (except in 2D float32, G2P_LOOP_2D_FLOAT32).
 
     Unrolled over all 3^d nodes, with the summed values returned as buffers (`hoist`): XLA:CPU then
     computes each of them in one kernel over the particles; without the buffers it fused the sums
@@ -308,8 +354,7 @@ def _window_sum(table, x, idx0, grid: Grid, init, body, derivs=False, pos_scale=
     Measured against it (same process, float64 unless noted): the transposed transfers of a
     reverse-mode substep 1036 instead of 1377 us (p2g 673 -> 439, g2p 337 -> 284; 2D hanging plate,
     dx 2.5 mm), reverse mode 1.115x (that scene, 10 frames) and 1.049x (3D, dx 8 mm); the forward
-    step (bench_step's cases) 1.13x in 2D, 1.07x in 3D, 1.06x in 3D float32 and 0.98-1.05x (three
-    runs) in 2D float32."""
+    step (bench_step's cases) 1.13x in 2D, 1.07x in 3D, 1.06x in 3D float32."""
     d = x.shape[1]
     _, fx, w = _stencil(x, grid)
     dw = _stencil_derivs(fx, grid) if derivs else None
@@ -591,8 +636,10 @@ def _g2p_impl(x, grid_v, grid: Grid, idx0):
 
     zc = jnp.zeros_like(x[:, 0])
     zero = (jnp.zeros_like(x), tuple(tuple(zc for _ in range(d)) for _ in range(d)))
-    # C = 4/dx^2 sum_i w_ip v_i (x_i - x_p)^T: the offsets come scaled by 4/dx^2. The grid velocities
-    # as a buffer (`_window_sum`).
+    # C = 4/dx^2 sum_i w_ip v_i (x_i - x_p)^T: the offsets come scaled by 4/dx^2.
+    if G2P_LOOP_2D_FLOAT32 and d == 2 and x.dtype == jnp.float32:
+        return _window_loop(grid_v, x, idx0, grid, zero, accumulate, pos_scale=scale)
+    # The grid velocities as a buffer (`_window_sum`).
     return _window_sum(hoist(grid_v, x[0, 0]), x, idx0, grid, zero, accumulate, pos_scale=scale)
 
 
