@@ -309,7 +309,7 @@ def _window_loop(table, x, idx0, grid: Grid, init, body, pos_scale=1.0):
     body), gathering inside the body: the table is then materialized once as a loop input (fused
     into one gather, the grid update was recomputed per gathered value), and the carry is
     materialized once (as an unrolled sum XLA:CPU fused it into every consumer in the constitutive
-        update and recomputed it there)."""
+    update and recomputed it there)."""
     d = x.shape[1]
     _, fx, w = _stencil(x, grid)
     strides = _strides(grid.shape)
@@ -354,7 +354,11 @@ def _window_sum(table, x, idx0, grid: Grid, init, body, derivs=False, pos_scale=
     Measured against it (same process, float64 unless noted): the transposed transfers of a
     reverse-mode substep 1036 instead of 1377 us (p2g 673 -> 439, g2p 337 -> 284; 2D hanging plate,
     dx 2.5 mm), reverse mode 1.115x (that scene, 10 frames) and 1.049x (3D, dx 8 mm); the forward
-    step (bench_step's cases) 1.13x in 2D, 1.07x in 3D, 1.06x in 3D float32."""
+    step (bench_step's cases) 1.13x in 2D, 1.07x in 3D, 1.06x in 3D float32.
+
+    The buffers' cond tests isfinite(x[0, 0]) (`hoist`): the identity while particle 0's position is
+    finite (inactive slots keep finite positions); if it is not, every sum comes back NaN, which the
+    rollout's failure report then attributes to particle 0, the particle that failed."""
     d = x.shape[1]
     _, fx, w = _stencil(x, grid)
     dw = _stencil_derivs(fx, grid) if derivs else None
@@ -679,6 +683,7 @@ def _g2p_transfer_bwd(grid, res, ct):
         return tuple(Dx[a] + dW[a] * s for a in range(d)), v + W[:, None] * g
 
     z = jnp.zeros_like(x[:, 0])
+    # grid_v, a residual, is gathered as it is: materialized by a cond first, reverse mode ran 0.97x.
     Dx, v = _window_sum(grid_v, x, idx0, grid, ((z,) * d, jnp.zeros_like(x)), body, derivs=True)
     # d(x_i - x_p)/dx_p = -1 in C's offsets: sum_i cC_ia (scale sum_k W_k g_k,i) = sum_i cCs_ia v_i.
     dx = jnp.stack([Dx[a] - sum(cCs[i][a] * v[:, i] for i in range(d)) for a in range(d)], axis=1)
