@@ -337,7 +337,7 @@ def _window_loop(table, x, idx0, grid: Grid, init, body, pos_scale=1.0):
     return jax.lax.scan(step, init, xs)[0]
 
 
-def _window_sum(table, x, idx0, grid: Grid, init, body, derivs=False, pos_scale=1.0):
+def _window_sum(table, x, idx0, grid: Grid, init, body, t, derivs=False, pos_scale=1.0):
     """Sum over the 3^d stencil nodes i of each particle p, gathering the grid rows `table` (G, c) of
     the last axis's 3 nodes as one window: `body(carry, g (N, c), W (N,), dpos[, dW]) -> carry` runs
     per node with g = table[i], W = w_ip, dpos = pos_scale (x_i - x_p) (d arrays (N,), m times
@@ -356,9 +356,8 @@ def _window_sum(table, x, idx0, grid: Grid, init, body, derivs=False, pos_scale=
     dx 2.5 mm), reverse mode 1.115x (that scene, 10 frames) and 1.049x (3D, dx 8 mm); the forward
     step (bench_step's cases) 1.13x in 2D, 1.07x in 3D, 1.06x in 3D float32.
 
-    The buffers' cond tests isfinite(x[0, 0]) (`hoist`): the identity while particle 0's position is
-    finite (inactive slots keep finite positions); if it is not, every sum comes back NaN, which the
-    rollout's failure report then attributes to particle 0, the particle that failed."""
+    t: the substep's start time, s: the buffers' cond tests isfinite(t) (`hoist`), as the other
+    buffers of the substep do; it stays a cond (a fusion boundary) under a vmap over parameters."""
     d = x.shape[1]
     _, fx, w = _stencil(x, grid)
     dw = _stencil_derivs(fx, grid) if derivs else None
@@ -379,7 +378,7 @@ def _window_sum(table, x, idx0, grid: Grid, init, body, derivs=False, pos_scale=
                       for j in range(d)],)
         carry = body(carry, windows[mid][:, off[-1], :], functools.reduce(operator.mul, ws), dpos, *extra)
     leaves, treedef = jax.tree_util.tree_flatten(carry)
-    return jax.tree_util.tree_unflatten(treedef, list(hoist(tuple(leaves), x[0, 0])))
+    return jax.tree_util.tree_unflatten(treedef, list(hoist(tuple(leaves), t)))
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
@@ -407,21 +406,22 @@ def _p2g_impl_jvp(grid, primals, tangents):
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
-def _p2g_transfer(grid, x, idx0, mvA, A, mass):
+def _p2g_transfer(grid, x, idx0, mvA, A, mass, t):
     """`_p2g_impl` with a hand-written reverse-mode derivative in x, mvA, A and mass: the grid
     cotangent is gathered once per stencil window and contracted per particle. (The two outputs
     are joined into one (G, d + 1) table in the backward pass: one concatenation, where autodiff's
     transpose of the slices padded each to the full table and added them, 52 of ~4600 us per
-    reverse-mode substep at dx 2.5 mm.)"""
+    reverse-mode substep at dx 2.5 mm.) t: the substep's start time, s (`_window_sum`); its
+    cotangent is zero."""
     return _p2g_impl(grid, x, idx0, mvA, A, mass)
 
 
-def _p2g_transfer_fwd(grid, x, idx0, mvA, A, mass):
-    return _p2g_transfer(grid, x, idx0, mvA, A, mass), (x, idx0, mvA, A, mass)
+def _p2g_transfer_fwd(grid, x, idx0, mvA, A, mass, t):
+    return _p2g_impl(grid, x, idx0, mvA, A, mass), (x, idx0, mvA, A, mass, t)
 
 
 def _p2g_transfer_bwd(grid, res, ct):
-    """Cotangents of (x, idx0, mvA, A, mass) from the grid cotangent ct = (c_i (d), c_i^m) per node i
+    """Cotangents of (x, idx0, mvA, A, mass, t) (idx0's and t's zero) from the grid cotangent ct = (c_i (d), c_i^m) per node i
     (the cotangents of the momentum (G, d) and of the mass (G,)).
 
     With W_ip the weight, r_ip = x_i - x_p and s_ip = c_i . (mv_p + A_p r_ip) + c_i^m m_p:
@@ -429,11 +429,11 @@ def _p2g_transfer_bwd(grid, res, ct):
       d x_p = sum_i grad_p W_ip s_ip - A_p^T (sum_i W_ip c_i)      (d r_ip / d x_p = -I).
     One pass over the stencil windows of ct (the gather that autodiff would also do), all sums
     accumulated per particle in it."""
-    x, idx0, mvA, A, mass = res
+    x, idx0, mvA, A, mass, t = res
     d = x.shape[1]
     # One (G, d + 1) table, as a buffer (jaxfoam._fusion): fused into the gather below, XLA:CPU
     # would evaluate the transposed grid update once per gathered value.
-    ct = hoist(jnp.concatenate([ct[0], ct[1][:, None]], axis=1), x[0, 0])
+    ct = hoist(jnp.concatenate([ct[0], ct[1][:, None]], axis=1), t)
     z = jnp.zeros_like(x[:, 0])
 
     def body(carry, g, W, dpos, dW):
@@ -448,12 +448,12 @@ def _p2g_transfer_bwd(grid, res, ct):
         return G0, G1, Dx
 
     init = ((z,) * (d + 1), tuple((z,) * d for _ in range(d)), (z,) * d)
-    G0, G1, Dx = _window_sum(ct, x, idx0, grid, init, body, derivs=True)
+    G0, G1, Dx = _window_sum(ct, x, idx0, grid, init, body, t, derivs=True)
     dmv = jnp.stack(G0[:d], axis=1)
     dA = jnp.stack([jnp.stack(row, axis=1) for row in G1], axis=1)
     # d(x_i - x_p)/dx_p = -1: the affine term's share.
     dx = jnp.stack([Dx[a] - sum(A[:, i, a] * G0[i] for i in range(d)) for a in range(d)], axis=1)
-    return dx, None, dmv, dA, G0[d]
+    return dx, None, dmv, dA, G0[d], None
 
 
 _p2g_transfer.defvjp(_p2g_transfer_fwd, _p2g_transfer_bwd)
@@ -483,7 +483,10 @@ def p2g(state: State, params: Params, grid: Grid, dt, idx0=None,
     A = jnp.stack([jnp.stack(row, axis=1) for row in affine], axis=1)
     if idx0 is None:
         idx0 = _flat_index(_stencil(x, grid)[0], (0,) * d, grid)
-    grid_mv = (_p2g_transfer if hand_adjoint else _p2g_impl)(grid, x, idx0, mvA, A, mass)
+    if hand_adjoint:
+        grid_mv = _p2g_transfer(grid, x, idx0, mvA, A, mass, state.t)
+    else:
+        grid_mv = _p2g_impl(grid, x, idx0, mvA, A, mass)
     # Reverse mode: the grid cotangent is materialized before the gather that transposes this
     # scatter (jaxfoam._fusion; the hand-written adjoint does it itself), and the grid is kept per
     # substep by the rematerialization policy.
@@ -625,11 +628,13 @@ def _g2p(state: State, grid_v, grid: Grid, idx0=None, hand_adjoint: bool = False
     if idx0 is None:
         idx0 = _flat_index(_stencil(state.x, grid)[0], (0,) * state.dim, grid)
     if hand_adjoint:
-        return _g2p_transfer(grid, state.x, grid_v, idx0)
-    return _g2p_impl(state.x, grid_v, grid, idx0)
+        return _g2p_transfer(grid, state.x, grid_v, idx0, state.t)
+    return _g2p_impl(state.x, grid_v, grid, idx0, state.t)
 
 
-def _g2p_impl(x, grid_v, grid: Grid, idx0):
+def _g2p_impl(x, grid_v, grid: Grid, idx0, t):
+    """(v (N, d) m/s, C components 1/s) gathered at x from grid_v; t: the substep's start time, s
+    (the cond that keeps the gathered table and the sums as buffers, `_window_sum`)."""
     scale = 4.0 / grid.dx ** 2
     d = x.shape[1]
 
@@ -644,35 +649,35 @@ def _g2p_impl(x, grid_v, grid: Grid, idx0):
     if G2P_LOOP_2D_FLOAT32 and d == 2 and x.dtype == jnp.float32:
         return _window_loop(grid_v, x, idx0, grid, zero, accumulate, pos_scale=scale)
     # The grid velocities as a buffer (`_window_sum`).
-    return _window_sum(hoist(grid_v, x[0, 0]), x, idx0, grid, zero, accumulate, pos_scale=scale)
+    return _window_sum(hoist(grid_v, t), x, idx0, grid, zero, accumulate, t, pos_scale=scale)
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
-def _g2p_transfer(grid, x, grid_v, idx0):
+def _g2p_transfer(grid, x, grid_v, idx0, t):
     """`_g2p` (v (N, d) m/s, C components 1/s) with a hand-written reverse-mode derivative in x and
     grid_v: one gather of the grid velocities for the position derivative and one scatter-add of
     the cotangent payload (the same APIC form as particle-to-grid)."""
-    return _g2p_impl(x, grid_v, grid, idx0)
+    return _g2p_impl(x, grid_v, grid, idx0, t)
 
 
-def _g2p_transfer_fwd(grid, x, grid_v, idx0):
+def _g2p_transfer_fwd(grid, x, grid_v, idx0, t):
     # The residuals are the inputs only: v is summed again in the backward pass's stencil sum, so a
     # rematerialized substep need not redo this transfer (its outputs are saved by name).
-    return _g2p_impl(x, grid_v, grid, idx0), (x, grid_v, idx0)
+    return _g2p_impl(x, grid_v, grid, idx0, t), (x, grid_v, idx0, t)
 
 
 def _g2p_transfer_bwd(grid, res, ct):
-    """Cotangents of (x, grid_v, idx0) from (cv, cC), the cotangents of v_p = sum_i W_ip v_i and
+    """Cotangents of (x, grid_v, idx0, t) (the last two zero) from (cv, cC), the cotangents of v_p = sum_i W_ip v_i and
     C_p = k sum_i W_ip v_i r_ip^T (k = 4 / dx^2, r_ip = x_i - x_p):
       d v_i = sum_p W_ip (cv_p + k cC_p r_ip)   (a particle-to-grid scatter of that payload),
       d x_p = sum_i grad_p W_ip v_i . (cv_p + k cC_p r_ip) - k cC_p^T v_p."""
-    x, grid_v, idx0 = res
+    x, grid_v, idx0, t = res
     cv, cC = ct
     d = x.shape[1]
     scale = 4.0 / grid.dx ** 2
     # The cotangents as buffers (jaxfoam._fusion): fused into the payload, XLA:CPU recomputed their
     # producers (the transposed constitutive update) per stencil node.
-    cv, cC = hoist((cv, cC), x[0, 0])
+    cv, cC = hoist((cv, cC), t)
     cCs = [[scale * cC[i][j] for j in range(d)] for i in range(d)]
 
     def body(carry, g, W, dpos, dW):
@@ -684,13 +689,13 @@ def _g2p_transfer_bwd(grid, res, ct):
 
     z = jnp.zeros_like(x[:, 0])
     # grid_v, a residual, is gathered as it is: materialized by a cond first, reverse mode ran 0.97x.
-    Dx, v = _window_sum(grid_v, x, idx0, grid, ((z,) * d, jnp.zeros_like(x)), body, derivs=True)
+    Dx, v = _window_sum(grid_v, x, idx0, grid, ((z,) * d, jnp.zeros_like(x)), body, t, derivs=True)
     # d(x_i - x_p)/dx_p = -1 in C's offsets: sum_i cC_ia (scale sum_k W_k g_k,i) = sum_i cCs_ia v_i.
     dx = jnp.stack([Dx[a] - sum(cCs[i][a] * v[:, i] for i in range(d)) for a in range(d)], axis=1)
     _, fx, w = _stencil(x, grid)
     A = jnp.stack([jnp.stack(row, axis=1) for row in cCs], axis=1)
     dgrid = _p2g_scatter(grid, fx, w, idx0, cv, A)
-    return dx, dgrid, None
+    return dx, dgrid, None, None
 
 
 _g2p_transfer.defvjp(_g2p_transfer_fwd, _g2p_transfer_bwd)

@@ -20,6 +20,9 @@ from jaxfoam._jacobian import CPU_COMPILER_OPTIONS
 from jaxfoam._mpm import (Grid, _flat_index, _g2p_impl, _g2p_transfer, _p2g_impl, _p2g_scatter, _p2g_transfer,
                           _stencil)
 
+# The substep's start time the transfers' conds test (s); any finite value.
+T0 = 0.25
+
 RTOL_AD = 1e-12   # hand-written VJP vs autodiff's transpose: round-off only
 RTOL_FD = 1e-7    # vs central differences (h = 1e-6 of the grid spacing or of the value)
 
@@ -54,7 +57,7 @@ def _p2g_plain(grid, idx0):
 
 
 def _g2p_plain(grid, idx0):
-    return lambda x, grid_v: _g2p_impl(x, grid_v, grid, idx0)
+    return lambda x, grid_v: _g2p_impl(x, grid_v, grid, idx0, T0)
 
 
 def _rel(a, b):
@@ -69,7 +72,7 @@ def test_p2g_adjoint_equals_autodiff_transpose(d):
     idx0 = _idx0(x, grid)
     ct = jnp.asarray(rng.normal(size=(grid.num_nodes, d + 1)))
     _, vjp_ad = jax.vjp(_p2g_plain(grid, idx0), x, mvA, A, mass)
-    out, vjp_hand = jax.vjp(lambda *a: _joined(_p2g_transfer(grid, a[0], idx0, *a[1:])), x, mvA, A, mass)
+    out, vjp_hand = jax.vjp(lambda *a: _joined(_p2g_transfer(grid, a[0], idx0, *a[1:], T0)), x, mvA, A, mass)
     np.testing.assert_allclose(out, _p2g_plain(grid, idx0)(x, mvA, A, mass), rtol=0, atol=0)
     for name, a, b in zip(("x", "mv", "A", "mass"), vjp_hand(ct), vjp_ad(ct)):
         assert _rel(a, b) <= RTOL_AD, f"{name}: relative difference {_rel(a, b):.2e}"
@@ -109,7 +112,7 @@ def test_g2p_adjoint_equals_autodiff_transpose(d):
     ct = (jnp.asarray(rng.normal(size=(n, d))),
           tuple(tuple(jnp.asarray(rng.normal(size=n)) for _ in range(d)) for _ in range(d)))
     _, vjp_ad = jax.vjp(_g2p_plain(grid, idx0), x, grid_v)
-    _, vjp_hand = jax.vjp(lambda x_, g_: _g2p_transfer(grid, x_, g_, idx0), x, grid_v)
+    _, vjp_hand = jax.vjp(lambda x_, g_: _g2p_transfer(grid, x_, g_, idx0, T0), x, grid_v)
     for name, a, b in zip(("x", "grid_v"), vjp_hand(ct), vjp_ad(ct)):
         assert _rel(a, b) <= RTOL_AD, f"{name}: relative difference {_rel(a, b):.2e}"
 
@@ -129,7 +132,7 @@ def test_transfer_adjoints_match_central_differences(d):
     rng, grid, x, mvA, A, mass, grid_v = _setup(d, n=12, seed=1)
     idx0 = _idx0(x, grid)
     ct_grid = jnp.asarray(rng.normal(size=(grid.num_nodes, d + 1)))
-    p2g_scalar = lambda *a: jnp.vdot(ct_grid, _joined(_p2g_transfer(grid, a[0], idx0, *a[1:])))
+    p2g_scalar = lambda *a: jnp.vdot(ct_grid, _joined(_p2g_transfer(grid, a[0], idx0, *a[1:], T0)))
     args = (x, mvA, A, mass)
     grads = jax.grad(p2g_scalar, argnums=(0, 1, 2, 3))(*args)
     for k, name in enumerate(("x", "mv", "A", "mass")):
@@ -144,7 +147,7 @@ def test_transfer_adjoints_match_central_differences(d):
     cC = jnp.asarray(rng.normal(size=(n, d, d)))
 
     def g2p_scalar(x_, g_):
-        v, C = _g2p_transfer(grid, x_, g_, idx0)
+        v, C = _g2p_transfer(grid, x_, g_, idx0, T0)
         return jnp.vdot(cv, v) + sum(jnp.vdot(cC[:, i, j], C[i][j]) for i in range(d) for j in range(d))
 
     gx, gg = jax.grad(g2p_scalar, argnums=(0, 1))(x, grid_v)
