@@ -58,3 +58,29 @@ def test_the_boundary_survives_xla_in_derivative_programs_only():
     fwd_hlo = jax.jit(f).lower(w, dt).compile().as_text()
     assert "conditional(" in grad_hlo
     assert "conditional(" not in fwd_hlo
+
+
+def test_a_rollout_vmapped_over_parameters_keeps_its_fusion_boundaries():
+    """An ensemble (jax.vmap of a rollout over mu) gives each member's own rollout to round-off, and
+    keeps every cond of the substep: their predicates test the time, which the ensemble shares, so
+    none turns into a select that computes both branches (a predicate on a particle's position did)."""
+    import pathlib
+
+    import jaxfoam as jf
+
+    scene = jf.load_scene(str(pathlib.Path(__file__).parents[1] / "experiments" / "scenes" / "hanging_plate_2d.json"))
+    params = jf.Params(kappa=scene.kappa, rho=scene.density, mu=200.0, sigma_y=20.0, eta=5.0, m=0.5)
+    sim = jf.Simulator(scene, [0.004], params, dx=0.01)
+    mus = jnp.asarray([120.0, 300.0])
+
+    def height(mu):
+        fr = sim.rollout(params.replace(mu=mu))[1]
+        return jnp.sum(fr["x"][:, :, 1] * fr["active"], axis=1) / jnp.sum(fr["active"], axis=1)
+
+    ens = jax.jit(jax.vmap(height))
+    out = ens(mus)
+    for k in range(2):
+        np.testing.assert_allclose(out[k], jax.jit(height)(mus[k]), rtol=1e-12)
+    n_member = jax.jit(height).lower(mus[0]).compile().as_text().count("conditional(")
+    n_ensemble = ens.lower(mus).compile().as_text().count("conditional(")
+    assert n_member >= 3 and n_ensemble == n_member, (n_member, n_ensemble)
