@@ -692,7 +692,11 @@ def _g2p_transfer_bwd(grid, res, ct):
     Dx, v = _window_sum(grid_v, x, idx0, grid, ((z,) * d, jnp.zeros_like(x)), body, t, derivs=True)
     # d(x_i - x_p)/dx_p = -1 in C's offsets: sum_i cC_ia (scale sum_k W_k g_k,i) = sum_i cCs_ia v_i.
     dx = jnp.stack([Dx[a] - sum(cCs[i][a] * v[:, i] for i in range(d)) for a in range(d)], axis=1)
+    # The stencil's fractions and weights as buffers: fused in, XLA:CPU recomputed them from the
+    # positions in each stencil block's payload kernel (9 in 3D): 3D reverse mode 1.080x (hanging
+    # plate, dx 8 mm, 7 rounds), 2D 1.02x. (The same in the forward p2g: 0.93-0.97x.)
     _, fx, w = _stencil(x, grid)
+    fx, w = hoist((fx, w), t)
     A = jnp.stack([jnp.stack(row, axis=1) for row in cCs], axis=1)
     dgrid = _p2g_scatter(grid, fx, w, idx0, cv, A)
     return dx, dgrid, None, None
