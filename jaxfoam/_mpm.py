@@ -299,6 +299,11 @@ def _p2g_scatter(grid: Grid, fx, w, idx0, mvA, A, mass=None):
     return _window_scatter(grid, idx0, _window_payload(grid, fx, w, mvA, A, mass))
 
 
+def _window_gather(table, start):
+    """The rows start, start + 1, start + 2 of `table` (G, c) per particle: (N, 3, c) (_WINDOW_GATHER)."""
+    return jax.lax.gather(table, start[:, None], _WINDOW_GATHER, (3, table.shape[1]), mode=_IN_BOUNDS)
+
+
 def _window_loop(table, x, idx0, grid: Grid, init, body, pos_scale=1.0):
     """Sum over the 3^d stencil nodes i of each particle p, gathering the grid rows `table` (G, c) of
     the last axis's 3 nodes as one window: `body(carry, g (N, c), W (N,), dpos) -> carry` runs per
@@ -328,8 +333,7 @@ def _window_loop(table, x, idx0, grid: Grid, init, body, pos_scale=1.0):
             mid = r[:-1]
             if mid not in windows:
                 start = ia + sum(mid[k - 1] * strides[k] for k in range(1, d - 1))
-                windows[mid] = jax.lax.gather(table, start[:, None], _WINDOW_GATHER, (3, table.shape[1]),
-                                              mode=_IN_BOUNDS)
+                windows[mid] = _window_gather(table, start)
             carry = body(carry, windows[mid][:, r[-1], :], wa * wr, [dp0] + dpr)
         return carry, None
 
@@ -368,8 +372,7 @@ def _window_sum(table, x, idx0, grid: Grid, init, body, t, derivs=False, pos_sca
         mid = off[:-1]
         if mid not in windows:
             start = idx0 + sum(mid[k] * strides[k] for k in range(d - 1))
-            windows[mid] = jax.lax.gather(table, start[:, None], _WINDOW_GATHER, (3, table.shape[1]),
-                                          mode=_IN_BOUNDS)
+            windows[mid] = _window_gather(table, start)
         ws = [w[off[k]][:, k] for k in range(d)]
         dpos = [(off[k] - fx[:, k]) * (grid.dx * pos_scale) for k in range(d)]
         extra = ()
@@ -421,8 +424,8 @@ def _p2g_transfer_fwd(grid, x, idx0, mvA, A, mass, t):
 
 
 def _p2g_transfer_bwd(grid, res, ct):
-    """Cotangents of (x, idx0, mvA, A, mass, t) (idx0's and t's zero) from the grid cotangent ct = (c_i (d), c_i^m) per node i
-    (the cotangents of the momentum (G, d) and of the mass (G,)).
+    """Cotangents of (x, idx0, mvA, A, mass, t) (idx0's and t's zero) from the grid cotangent
+    ct = (c_i (d), c_i^m) per node i (the cotangents of the momentum (G, d) and of the mass (G,)).
 
     With W_ip the weight, r_ip = x_i - x_p and s_ip = c_i . (mv_p + A_p r_ip) + c_i^m m_p:
       d mv_p = sum_i W_ip c_i,   d A_p = sum_i W_ip c_i r_ip^T,   d m_p = sum_i W_ip c_i^m,
@@ -667,8 +670,8 @@ def _g2p_transfer_fwd(grid, x, grid_v, idx0, t):
 
 
 def _g2p_transfer_bwd(grid, res, ct):
-    """Cotangents of (x, grid_v, idx0, t) (the last two zero) from (cv, cC), the cotangents of v_p = sum_i W_ip v_i and
-    C_p = k sum_i W_ip v_i r_ip^T (k = 4 / dx^2, r_ip = x_i - x_p):
+    """Cotangents of (x, grid_v, idx0, t) (the last two zero) from (cv, cC), the cotangents of
+    v_p = sum_i W_ip v_i and C_p = k sum_i W_ip v_i r_ip^T (k = 4 / dx^2, r_ip = x_i - x_p):
       d v_i = sum_p W_ip (cv_p + k cC_p r_ip)   (a particle-to-grid scatter of that payload),
       d x_p = sum_i grad_p W_ip v_i . (cv_p + k cC_p r_ip) - k cC_p^T v_p."""
     x, grid_v, idx0, t = res

@@ -68,7 +68,8 @@ def test_a_rollout_vmapped_over_parameters_keeps_its_fusion_boundaries():
 
     import jaxfoam as jf
 
-    scene = jf.load_scene(str(pathlib.Path(__file__).parents[1] / "experiments" / "scenes" / "hanging_plate_2d.json"))
+    scenes = pathlib.Path(__file__).parents[1] / "experiments" / "scenes"
+    scene = jf.load_scene(str(scenes / "hanging_plate_2d.json"))
     params = jf.Params(kappa=scene.kappa, rho=scene.density, mu=200.0, sigma_y=20.0, eta=5.0, m=0.5)
     sim = jf.Simulator(scene, [0.004], params, dx=0.01)
     mus = jnp.asarray([120.0, 300.0])
