@@ -21,8 +21,9 @@ frictionless floor (SLIP), to see how much of the drop's bias the floor's fricti
 not identifiable with an interval containing the truth); truth inside the interval in >= 90% of cases;
 a 2D fit under 15 minutes on 2 CPU cores.
 
-Every case is saved as it finishes (out/recovery/<case>.json, data and fit logs beside it; a killed
-study resumes where it stopped), and the table and chart are rebuilt from the finished cases.
+Every case is saved as it finishes (its record in experiments/results/recovery_cases/<case>.json,
+committed; its data and fit log in out/recovery/; a killed study resumes where it stopped), and the
+table and chart are rebuilt from the finished cases (`--report` needs only the committed records).
 Usage: python -m experiments.recovery [--quick] [--sets N] [--only TEXT] [--report]
 (--report: only rebuild table and chart; re-running skips finished fits and resumes a killed one from its log)
 Writes experiments/results/recovery[_quick].md and .png. SI units.
@@ -49,6 +50,9 @@ NAME = "recovery"
 ROOT = Path(__file__).resolve().parent
 SCENES = ROOT / "scenes"
 WORK = ROOT.parent / "out" / "recovery"
+# Each finished case's record and its small diagnostics (JSON) are committed here, so the tables and chart
+# can be rebuilt (--report) on a fresh clone; the data files and fit logs (megabytes) stay in WORK.
+CASES = ROOT / "results" / "recovery_cases"
 # The issue's shaving-cream ranges of the truths (SI units); log-uniform except m.
 TRUTH_RANGES = {"mu": (50.0, 400.0), "sigma_y": (15.0, 80.0), "eta": (1.0, 30.0), "m": (0.3, 1.0)}
 TRUTH_SEED = 2015
@@ -260,7 +264,7 @@ def shear_rates(c: SceneCase, k: int, quick: bool) -> dict:
     the fraction of particle-frames that yield and the 10th/50th/90th percentiles of their rate (1/s).
     eta and m can only be separated when these span a wide range (stress sigma_y + eta gamma_dot^m).
     Cached in out/recovery/<case>_shear.json."""
-    path = WORK / f"{case_id(c, k, quick)}_shear.json"
+    path = CASES / f"{case_id(c, k, quick)}_shear.json"
     if path.exists():
         return json.loads(path.read_text())
     from jaxfoam import Params, load_scene, simulate
@@ -275,7 +279,7 @@ def shear_rates(c: SceneCase, k: int, quick: bool) -> dict:
                p10=float(np.percentile(y, 10)) if y.size else 0.0,
                p50=float(np.percentile(y, 50)) if y.size else 0.0,
                p90=float(np.percentile(y, 90)) if y.size else 0.0)
-    WORK.mkdir(parents=True, exist_ok=True)
+    CASES.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(out) + "\n")
     return out
 
@@ -284,7 +288,7 @@ def truth_loss(c: SceneCase, k: int, quick: bool) -> float:
     """The fit's loss 0.5 |r|^2 at the true parameters (one rollout at dx_fit): below the fitted loss, the
     optimizer stopped short of the truth's basin; above it, the fit grid's bias (or the data's
     ambiguity) moved the optimum away from the truth. Cached in out/recovery/<case>_truthloss.json."""
-    path = WORK / f"{case_id(c, k, quick)}_truthloss.json"
+    path = CASES / f"{case_id(c, k, quick)}_truthloss.json"
     if path.exists():
         return float(json.loads(path.read_text())["loss"])
     from jaxfoam.calibrate import build_problem
@@ -293,6 +297,7 @@ def truth_loss(c: SceneCase, k: int, quick: bool) -> float:
     problem = build_problem(data, FitSettings(dx=c.dx_fit, optimizer="lm", seed=0))
     theta = np.array([data.truth[n] for n in problem.transform.names])
     loss = problem.loss(problem.transform.to_unconstrained(theta))
+    CASES.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(dict(loss=loss)) + "\n")
     return loss
 
@@ -324,7 +329,7 @@ def goodness(r: dict) -> tuple[float, float]:
     spacing = particle_spacing(r["dx_fit"], fit["settings"].get("ppc") or FIT_PPC[dim], dim)
     if fit.get("frame_boundary_error"):
         return float(min(fit["frame_iou"])), float(max(fit["frame_boundary_error"])) / spacing
-    path = WORK / f"{r['case']}_{r['optimizer']}_gof.json"
+    path = CASES / f"{r['case']}_{r['optimizer']}_gof.json"
     if not path.exists():
         try:
             from jaxfoam.calibrate import build_problem, silhouette_mismatch
@@ -374,7 +379,8 @@ def reported_with_current_rules(record: dict) -> bool:
     """Whether a finished fit's intervals were computed with the fitter's current uncertainty rules
     (the discretization check's safety factor, `jaxfoam.calibrate.GCI_SAFETY`)."""
     check = record["fit"]["settings"].get("dx_check") or {}
-    return check.get("safety") == GCI_SAFETY
+    # records from before 2026-11-24 lack interval_local: a misfit then still reported its local interval
+    return check.get("safety") == GCI_SAFETY and "interval_local" in record["fit"]
 
 
 def run_job(c: SceneCase, k: int, opt: str, quick: bool) -> Path:
@@ -383,7 +389,7 @@ def run_job(c: SceneCase, k: int, opt: str, quick: bool) -> Path:
     optimizer step, and recomputes the uncertainty at the same optimum (the fit's wall time keeps the
     logged optimizer time and adds this set-up and uncertainty)."""
     cid = case_id(c, k, quick)
-    res_path = WORK / f"{cid}_{opt}.json"
+    res_path = CASES / f"{cid}_{opt}.json"
     log = WORK / f"{cid}_{opt}.fitlog.h5"
     old = json.loads(res_path.read_text()) if res_path.exists() else None
     if old is not None and len(old["fit"]["runs"]) != starts_for(c, opt, quick):
@@ -415,6 +421,7 @@ def run_job(c: SceneCase, k: int, opt: str, quick: bool) -> Path:
     if old is not None:
         record["rereported"] = dict(wall=time.perf_counter() - t0, date=time.strftime("%Y-%m-%d"),
                                     previous_safety=(old["fit"]["settings"].get("dx_check") or {}).get("safety"))
+    CASES.mkdir(parents=True, exist_ok=True)
     res_path.write_text(json.dumps(record, indent=1) + "\n")
     print(res.report(), flush=True)
     return res_path
@@ -435,7 +442,7 @@ def load_records(quick: bool) -> list[dict]:
     for c in (QUICK if quick else FULL + PROBES):
         for k in range(N_SETS):
             for opt in ("lm", "lbfgs", "adam"):
-                p = WORK / f"{case_id(c, k, quick)}_{opt}.json"
+                p = CASES / f"{case_id(c, k, quick)}_{opt}.json"
                 if p.exists():
                     recs.append(json.loads(p.read_text()))
     return recs
@@ -532,8 +539,8 @@ def report(quick: bool, n_sets: int | None = None) -> None:
                     "decades. `min IoU; max boundary`: the fitter's goodness-of-fit check, the smallest per-frame IoU "
                     "of the fitted silhouette with the data and the largest per-frame mean distance between their "
                     "boundaries in particle spacings (dx / 2 here); above FRAME_BOUNDARY_SPACINGS (1) the fitter "
-                    "reports that it did not reproduce the data and that its intervals are not trustworthy "
-                    "(**no**).\n\n")
+                    "reports that it did not reproduce the data (**no**) and reports each parameter's bounds as its "
+                    "interval, not identifiable (the interval at its optimum kept as `interval_local`).\n\n")
         body.append(C.md_table(["scene", "set", "truth (mu, sigma_y, eta, m)", "fit"] + [f"err {n}" for n in names]
                                + ["loss", "loss at truth", "min IoU; max boundary (spacings)", "iter", "evals", "stop", "wall min",
                                   "yielding; shear rate p10-p90 (1/s)"], rows))

@@ -368,8 +368,12 @@ class FitResult:
         observed mask over weighted pixels.  frame_boundary_error: per used frame, the mean distance
         between the two silhouettes' boundaries, m (`silhouette_mismatch`).  frame_boundary_limit: the
         largest admitted, m: FRAME_BOUNDARY_SPACINGS particle spacings. `reproduces_data` is False, and
-        a note says so, when a frame exceeds it: the intervals, which assume a fit that reproduces the
-        data, are then not trustworthy.
+        a note says so, when a frame exceeds it. The intervals assume a fit that reproduces the data, so
+        `interval` is then each parameter's bounds (the data, as fitted, exclude nothing the bounds
+        allow) and no parameter is identifiable; the interval computed at the optimum is kept in
+        `interval_local`.
+      interval_local: the combined interval at the optimum before the goodness-of-fit check (equal to
+        `interval` when the fit reproduces the data).
     """
 
     params: dict
@@ -399,6 +403,7 @@ class FitResult:
     frame_iou: tuple = ()
     frame_boundary_error: tuple = ()
     frame_boundary_limit: float = math.nan
+    interval_local: dict | None = None
 
     @property
     def reproduces_data(self) -> bool:
@@ -427,6 +432,7 @@ class FitResult:
             "format": "jaxfoam-fit", "version": 1,
             "params": self.params, "fitted": list(self.fitted), "level": self.settings.get("level"),
             "interval": self.interval, "interval_statistical": self.interval_statistical,
+            "interval_local": self.interval if self.interval_local is None else self.interval_local,
             "numerical_error": self.numerical_error, "stderr": self.stderr, "correlation": self.correlation,
             "identifiable": self.identifiable, "notes": list(self.notes), "loss": self.loss,
             "loss_history": self.loss_history, "time_history": self.time_history, "runs": self.runs,
@@ -1111,18 +1117,25 @@ def _with_goodness_of_fit(problem: CalibrationProblem, result: FitResult) -> Fit
     ppc = FIT_PPC[problem.scene.dim] if problem.settings.ppc is None else int(problem.settings.ppc)
     limit = FRAME_BOUNDARY_SPACINGS * particle_spacing(problem.dx, ppc, problem.scene.dim)
     bad = np.nonzero(boundary > limit)[0]
+    interval, identifiable = dict(result.interval), dict(result.identifiable)
     if len(bad):
         times = np.asarray(problem.data.times)[np.asarray(problem.frames)]
         k = int(np.argmax(boundary))
+        tr = problem.transform
+        interval = {n: (float(tr.lower[i]), float(tr.upper[i])) for i, n in enumerate(tr.names)}
+        identifiable = {n: False for n in identifiable}
         notes.append(f"the fitted simulation does not reproduce {len(bad)} of {len(iou)} frames (silhouette boundaries "
                      f"more than {FRAME_BOUNDARY_SPACINGS:g} particle spacing = {limit:.3g} m apart on average; worst "
-                     f"{boundary[k]:.3g} m, IoU {iou[k]:.2f}, at t = {times[k]:.4g} s): the intervals assume a fit that "
-                     f"reproduces the data and are not trustworthy here. Likely a local minimum (more --starts, "
-                     f"another --optimizer) or an event such as a tear-off or a contact that the dx = "
-                     f"{problem.dx:.3g} m grid places differently from the data (finer --dx).")
+                     f"{boundary[k]:.3g} m, IoU {iou[k]:.2f}, at t = {times[k]:.4g} s). The intervals computed at this "
+                     f"optimum assume a fit that reproduces the data, so each reported interval is the parameter's "
+                     f"bounds and no parameter is reported identifiable (the interval at the optimum is kept as "
+                     f"interval_local). Likely a local minimum (more --starts, another --optimizer) or an event such "
+                     f"as a tear-off or a contact that the dx = {problem.dx:.3g} m grid places differently from the "
+                     f"data (finer --dx).")
     return dataclasses.replace(result, frame_iou=tuple(float(v) for v in iou),
                                frame_boundary_error=tuple(float(v) for v in boundary), frame_boundary_limit=limit,
-                               notes=tuple(notes))
+                               notes=tuple(notes), interval=interval, identifiable=identifiable,
+                               interval_local=dict(result.interval))
 
 
 # ----------------------------------------------------------------------------------------------

@@ -76,6 +76,7 @@ def test_fit_recovers_yield_stress_from_finer_synthetic_data(slump):
     assert max(fit["frame_boundary_error"]) < 0.5 * fit["frame_boundary_limit"], fit["frame_boundary_error"]
     assert min(fit["frame_iou"]) > 0.9, fit["frame_iou"]
     assert not any("does not reproduce" in n for n in fit["notes"])
+    assert fit["interval_local"] == fit["interval"]  # a fit that reproduces its data keeps its interval
     for suffix in ("_loss.png", "_overlay.png"):
         assert out.with_name(out.stem + suffix).stat().st_size > 1000
     assert default_log_path(out).exists()
@@ -184,6 +185,42 @@ def test_reported_interval_that_fills_the_bounds_is_not_identifiable():
     ident, notes = judge_reported_intervals({"mu": (50.0, 300.0), "m": (1.4, 1.5)}, params, tr,
                                             {"mu": True, "m": True})
     assert ident == {"mu": False, "m": True} and "wider than 1 times its value 200" in notes[0]
+
+
+def test_a_fit_that_does_not_reproduce_its_data_reports_its_bounds(slump):
+    """Goodness-of-fit contract: the local interval assumes a fit that reproduces the data. At sigma_y =
+    6x the truth (150 Pa against rho g H = 78 Pa) the column hardly slumps, the fitted boundaries lie
+    far more than a particle spacing from the observed ones, and the result then reports sigma_y's bounds
+    as its interval, not identifiable, with the interval at that optimum kept as interval_local; at the
+    truth the same check keeps the interval and the flag."""
+    import dataclasses as dc
+
+    from jaxfoam.calibrate import FitResult, _with_goodness_of_fit, build_problem
+
+    problem = build_problem(read_silhouettes(slump[0]), SETTINGS)
+    lo_b, hi_b = float(problem.transform.lower[0]), float(problem.transform.upper[0])
+    local = {"sigma_y": (140.0, 160.0)}
+
+    def result_at(sigma_y):
+        z = problem.transform.to_unconstrained(np.array([sigma_y]))
+        return FitResult(params=problem.params_of(z), fitted=("sigma_y",), interval=dict(local),
+                         interval_statistical=dict(local), numerical_error={"sigma_y": 0.0}, stderr={"sigma_y": 5.0},
+                         correlation=np.eye(1), identifiable={"sigma_y": True}, notes=(), loss=0.0,
+                         loss_history=np.zeros(1), time_history=np.zeros(1), runs=[], best_run=0, best_iteration=0,
+                         reason="converged_ftol", iterations=0, evaluations=1, settings={"level": 0.95}, data={},
+                         wall_time=0.0, n_effective=1.0, residual=np.asarray(problem.residual(z)))
+
+    bad = _with_goodness_of_fit(problem, result_at(6.0 * TRUTH["sigma_y"]))
+    assert not bad.reproduces_data and max(bad.frame_boundary_error) > 1.5 * bad.frame_boundary_limit  # 1.9 measured
+    assert bad.interval == {"sigma_y": (lo_b, hi_b)} and lo_b < TRUTH["sigma_y"] < hi_b
+    assert bad.identifiable == {"sigma_y": False} and bad.interval_local == local
+    assert bad.interval_statistical == local  # the Gauss-Newton part is still reported as computed
+    note = [n for n in bad.notes if "does not reproduce" in n]
+    assert len(note) == 1 and "interval_local" in note[0]
+    d = bad.to_dict()
+    assert d["interval"]["sigma_y"] == [lo_b, hi_b] and d["interval_local"]["sigma_y"] == [140.0, 160.0]
+    good = _with_goodness_of_fit(problem, dc.replace(result_at(TRUTH["sigma_y"]), interval={"sigma_y": (24.0, 26.0)}))
+    assert good.reproduces_data and good.interval == {"sigma_y": (24.0, 26.0)} and good.identifiable["sigma_y"]
 
 
 def test_silhouette_mismatch_of_shifted_squares_and_weights():
