@@ -93,9 +93,6 @@ FINE = [SceneCase("drop_2d", 0.01 / math.sqrt(2.0), 0.4, 12)]
 # grid: experiments/floor_contact measures how much less the foam spreads on the 1 cm grid than on finer
 # ones. Does the drop's bias go with the friction?
 SLIP = [SceneCase("drop_2d_frictionless", 0.01, 0.4, 12)]
-# The fitter's default grid (`jaxfoam fit` without --dx: the largest domain extent / FIT_CELLS, 64 cells in
-# 2D, 4.7-5.5 mm here), LM only, the same truths, noise and budget, data at half that spacing: what a user
-# who keeps the default gets, against the study's coarser 1 cm grid.
 
 
 def default_fit_dx(name: str) -> float:
@@ -107,6 +104,9 @@ def default_fit_dx(name: str) -> float:
     return extent / FIT_CELLS[len(dom["min"])]
 
 
+# The fitter's default grid (`jaxfoam fit` without --dx: the largest domain extent / FIT_CELLS, 64 cells in
+# 2D, 4.7-5.5 mm here), LM only, the same truths, noise and budget, data at half that spacing: what a user
+# who keeps the default gets, against the study's coarser 1 cm grid.
 DEFAULT_GRID = [dataclasses.replace(c, dx_fit=default_fit_dx(c.name)) for c in FULL if not c.name.endswith("3d")]
 PROBES = FINE + SLIP + DEFAULT_GRID
 # Budgets: starts and iterations per optimizer; the optimizer comparison runs on the same data. The full
@@ -298,7 +298,7 @@ def shear_rates(c: SceneCase, k: int, quick: bool) -> dict:
     """The plastic shear rates the truth produces in a case (rolled out at dx_fit, SHEAR_FRAMES frames):
     the fraction of particle-frames that yield and the 10th/50th/90th percentiles of their rate (1/s).
     eta and m can only be separated when these span a wide range (stress sigma_y + eta gamma_dot^m).
-    Cached in out/recovery/<case>_shear.json."""
+    Cached in CASES/<case>_shear.json."""
     path = CASES / f"{case_id(c, k, quick)}_shear.json"
     if path.exists():
         return json.loads(path.read_text())
@@ -322,7 +322,7 @@ def shear_rates(c: SceneCase, k: int, quick: bool) -> dict:
 def truth_loss(c: SceneCase, k: int, quick: bool) -> float:
     """The fit's loss 0.5 |r|^2 at the true parameters (one rollout at dx_fit): below the fitted loss, the
     optimizer stopped short of the truth's basin; above it, the fit grid's bias (or the data's
-    ambiguity) moved the optimum away from the truth. Cached in out/recovery/<case>_truthloss.json."""
+    ambiguity) moved the optimum away from the truth. Cached in CASES/<case>_truthloss.json."""
     path = CASES / f"{case_id(c, k, quick)}_truthloss.json"
     if path.exists():
         return float(json.loads(path.read_text())["loss"])
@@ -355,7 +355,7 @@ def goodness(r: dict) -> tuple[float, float]:
     """(smallest per-frame IoU, largest per-frame mean boundary distance in particle spacings) of a fit
     against its data: the fitter's goodness-of-fit check (`FitResult.frame_iou`, `.frame_boundary_error`,
     `.frame_boundary_limit`). Fits recorded before the check existed get it from one rollout at the
-    fitted parameters, cached in out/recovery/<case>_<optimizer>_gof.json. NaNs if it cannot be computed."""
+    fitted parameters, cached in CASES/<case>_<optimizer>_gof.json. NaNs if it cannot be computed."""
     from jaxfoam.calibrate import FIT_PPC
     from jaxfoam.silhouette import particle_spacing
 
@@ -526,17 +526,21 @@ def _default_grid_section(dflt: list[dict], lm: list[dict], names) -> str:
     n3d = len(names) * len(lm3d)
     in3d = sum(b["evaluation"][p]["inside"] for b in lm3d for p in names)
     g3d = sum(b["evaluation"][p]["goal_met"] for b in lm3d for p in names)
+    from jaxfoam.calibrate import FIT_CELLS
+
+    grid = [r["dx_fit"] * 1e3 for r in dflt]
+    coarse = f"{same[0]['dx_fit'] * 1e3:g} mm" if same else "dx_fit"
     return (f"\n## The fitter's default grid (2D, LM, {DEFAULT_STARTS} starts)\n\n"
-            "`jaxfoam fit` without `--dx` fits on the largest domain extent / 64 (4.7-5.5 mm for these scenes). "
-            "The same truths, noise and budget, fitted on that grid to data made at half its spacing; beside each, "
-            "the same set at the study's 1 cm.\n\n"
+            f"`jaxfoam fit` without `--dx` fits on the largest domain extent / {FIT_CELLS[2]} ({min(grid):.1f}-"
+            f"{max(grid):.1f} mm for these scenes). The same truths, noise and budget, fitted on that grid to data "
+            f"made at half its spacing; beside each, the same set at the study's {coarse}.\n\n"
             + _probe_table(dflt, lm, names, base_scene=lambda r: r["scene"])
             + f"\nOn the default grid: truth inside the combined interval in {inside}/{n} parameter-cases, goal met in "
             f"{goals}/{n}; within the error goal: " + ", ".join(f"{p} {within[p]}/{len(dflt)}" for p in names)
-            + f" (at 1 cm, the same sets: " + ", ".join(
+            + f" (at {coarse}, the same sets: " + ", ".join(
                 f"{p} {sum(b['evaluation'][p]['within_goal'] for b in same)}/{len(same)}" for p in names)
             + f"). Wall time {min(walls):.1f}-{max(walls):.1f} min per fit (goal < 15 min)."
-            + (f" With the 3D fits of the main table (dx 16 mm) the truth is inside {inside + in3d}/{n + n3d} intervals "
+            + (f" With the 3D fits of the main table (dx {lm3d[0]['dx_fit'] * 1e3:g} mm) the truth is inside {inside + in3d}/{n + n3d} intervals "
                f"and the goal is met in {goals + g3d}/{n + n3d}." if n3d else "") + "\n")
 
 
