@@ -151,6 +151,12 @@ def least_squares(fn: Callable, x0, optimizer: AbstractOptimizer | None = None, 
       ftol: stop when |L_k - L_{k-1}| <= ftol * max(|L_k|, |L_{k-1}|) (None disables).
       xtol: stop when max|x_k - x_{k-1}| <= xtol * (xtol + max|x_k|) (None disables).
       gtol: stop when max|grad| <= gtol, in loss units per unit of x (None disables).
+      max_time: wall-time budget of this call, s (None: unlimited). It is checked before each iteration:
+        the run stops (reason MAX_TIME) when the time left is shorter than the previous iteration of this
+        call took, so one iteration may overrun it; the starting point of a fresh run is always evaluated,
+        unless max_time is 0: then nothing is evaluated or logged, and the solution has loss inf and an
+        empty history (a multi-start passes 0 to the starts its budget left no time for). A run stopped
+        by its budget continues when resumed (each call brings its own budget).
       callback: called with an `IterationInfo` after each accepted iteration (and iteration 0), after
         the fit log has been flushed; an exception it raises ends the fit (the log stays resumable).
       log: path of an HDF5 fit log (or an open `FitLog`), None for no log.
@@ -167,7 +173,8 @@ def least_squares(fn: Callable, x0, optimizer: AbstractOptimizer | None = None, 
 
 
 def _iterate(kind, evaluate, x0, optimizer, *, max_iterations=100, max_evaluations=None, ftol=1e-10,
-             xtol=1e-10, gtol=None, callback=None, log=None, run=0, resume=False, seed=None) -> Solution:
+             xtol=1e-10, gtol=None, callback=None, log=None, run=0, resume=False, seed=None,
+             max_time=None) -> Solution:
     if not isinstance(optimizer, AbstractOptimizer):
         raise ValueError(f"optimizer must be a fitting optimizer (Adam, LBFGS, LevenbergMarquardt), got "
                          f"{optimizer!r}")
@@ -178,6 +185,9 @@ def _iterate(kind, evaluate, x0, optimizer, *, max_iterations=100, max_evaluatio
         raise ValueError(f"max_evaluations must be None or >= 1, got {max_evaluations!r}")
     for name, value in (("ftol", ftol), ("xtol", xtol), ("gtol", gtol)):
         _check_tol(name, value)
+    if max_time is not None and not (isinstance(max_time, (int, float, np.floating, np.integer)) and
+                                     math.isfinite(max_time) and max_time >= 0):
+        raise ValueError(f"max_time must be None or a finite number of seconds >= 0, got {max_time!r}")
     meta = {"kind": kind, "optimizer": optimizer.config(), "ftol": ftol, "xtol": xtol, "gtol": gtol,
             "max_iterations": int(max_iterations), "max_evaluations": max_evaluations, "n_params": x0.shape[0]}
 
@@ -185,15 +195,25 @@ def _iterate(kind, evaluate, x0, optimizer, *, max_iterations=100, max_evaluatio
     fitlog = FitLog(log) if owns_log else log
     try:
         return _loop(kind, evaluate, x0, optimizer, meta, fitlog, int(run), bool(resume), seed,
-                     int(max_iterations), max_evaluations, ftol, xtol, gtol, callback)
+                     int(max_iterations), max_evaluations, ftol, xtol, gtol, callback, max_time)
     finally:
         if owns_log:
             fitlog.close()
 
 
+def _not_started(x0, run) -> Solution:
+    """The solution of a run that the time budget left no time to start: nothing evaluated."""
+    p = x0.shape[0]
+    empty = History(loss=np.zeros(0), x=np.zeros((0, p)), evaluations=np.zeros(0, np.int64), time=np.zeros(0),
+                    nonfinite=np.zeros(0, np.int64))
+    return Solution(x=np.asarray(x0), loss=math.inf, grad=np.full(p, np.nan), reason=Reason.MAX_TIME, iterations=0,
+                    evaluations=0, nonfinite_evaluations=0, wall_time=0.0, history=empty, state=None, run=run)
+
+
 def _loop(kind, evaluate, x0, optimizer, meta, fitlog, run, resume, seed, max_iterations, max_evaluations,
-          ftol, xtol, gtol, callback):
+          ftol, xtol, gtol, callback, max_time=None):
     clock0 = _time.perf_counter()
+    deadline = None if max_time is None else clock0 + float(max_time)
     runlog = fitlog.run(run) if fitlog is not None else None
     rows = {"x": [], "loss": [], "evaluations": [], "time": [], "nonfinite": []}
     time_offset = 0.0
@@ -250,13 +270,16 @@ def _loop(kind, evaluate, x0, optimizer, meta, fitlog, run, resume, seed, max_it
             reason = Reason(finished["reason"])
             more_budget = ((reason == Reason.MAX_ITERATIONS and len(rows["loss"]) - 1 < max_iterations) or
                            (reason == Reason.MAX_EVALUATIONS and
-                            (max_evaluations is None or finished["evaluations"] < max_evaluations)))
+                            (max_evaluations is None or finished["evaluations"] < max_evaluations)) or
+                           reason == Reason.MAX_TIME)  # each call brings its own time budget
             if not more_budget:
                 oracle.evaluations, oracle.nonfinite = finished["evaluations"], finished["nonfinite"]
                 state = dataclasses.replace(state, status=host(finished["status"], np.int32))
                 return solution(x, state, reason, finished["wall_time"])
             runlog.unfinish()
     else:
+        if max_time is not None and float(max_time) <= 0.0:
+            return _not_started(x0, run)
         if runlog is not None:
             runlog.begin(meta, x0, seed)
         x = x0
@@ -269,6 +292,7 @@ def _loop(kind, evaluate, x0, optimizer, meta, fitlog, run, resume, seed, max_it
         record(0, x, state)
 
     reason = None
+    last_step = 0.0  # seconds the previous iteration of this call took (the time-budget forecast)
     while reason is None:
         done, reason = optimizer.terminate(state)
         if done:
@@ -282,11 +306,16 @@ def _loop(kind, evaluate, x0, optimizer, meta, fitlog, run, resume, seed, max_it
         if max_evaluations is not None and oracle.evaluations >= max_evaluations:
             reason = Reason.MAX_EVALUATIONS
             break
+        step0 = _time.perf_counter()
+        if deadline is not None and step0 + last_step > deadline:
+            reason = Reason.MAX_TIME
+            break
         try:
             x_new, state_new = optimizer.step(fn, x, state)
         except _BudgetExhausted:
             reason = Reason.MAX_EVALUATIONS
             break
+        last_step = _time.perf_counter() - step0
         done, step_reason = optimizer.terminate(state_new)
         if done and x_new is x:
             state, reason = state_new, step_reason  # the step failed: x unchanged, not an iteration

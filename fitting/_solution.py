@@ -19,6 +19,8 @@ class Reason(str, enum.Enum):
     MAX_EVALUATIONS = "max_evaluations"
     NONFINITE = "nonfinite"
     STALLED = "stalled"
+    # Appended last: the fit log stores reasons by their index in this enum (REASON_CODES).
+    MAX_TIME = "max_time"
 
     @property
     def converged(self) -> bool:
@@ -38,6 +40,7 @@ _MESSAGES = {
     Reason.MAX_EVALUATIONS: "stopped: the objective-evaluation budget (max_evaluations) is spent",
     Reason.NONFINITE: "stopped: the objective is not finite at the start, or every shrunk trial step was non-finite",
     Reason.STALLED: "stopped: no decrease found along the search direction (line search or damping limit reached)",
+    Reason.MAX_TIME: "stopped: the wall-time budget (max_time) is spent; resuming from the fit log continues the run",
 }
 
 # Optimizer states keep their status as an integer array (a pytree leaf that an HDF5 log can store);

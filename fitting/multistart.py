@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+import time
 from typing import Callable, Mapping
 
 import numpy as np
@@ -88,7 +89,7 @@ class MultiStartResult:
 
 
 def multistart(solve: Callable[..., Solution], starts, *, log=None, resume: bool = False, seed=None,
-               unit=None) -> MultiStartResult:
+               unit=None, max_time: float | None = None) -> MultiStartResult:
     """Run `solve` from every start and keep the best.
 
     Args:
@@ -99,7 +100,14 @@ def multistart(solve: Callable[..., Solution], starts, *, log=None, resume: bool
       resume: continue a logged multi-start (finished runs are read back without evaluating anything,
         the interrupted one continues, the rest start); the starts must equal the logged ones.
       seed: the seed that produced the starts (recorded).  unit: their unit-cube design (recorded).
+      max_time: wall-time budget of all starts together, s (None: unlimited). Each start gets what is
+        left of it as the driver's `max_time` keyword (so `solve` must accept it); the first start
+        always evaluates its starting point, a later start the budget leaves no time for is not evaluated (`Reason.MAX_TIME`, loss inf, empty history). With `resume`,
+        runs stopped by the budget continue and unstarted ones start, under the new budget.
     """
+    if max_time is not None and not (np.isfinite(max_time) and max_time >= 0):
+        raise ValueError(f"max_time must be None or a finite number of seconds >= 0, got {max_time!r}")
+    deadline = None if max_time is None else time.perf_counter() + float(max_time)
     starts = np.asarray(starts, np.float64)
     if starts.ndim != 2 or starts.shape[0] < 1:
         raise ValueError(f"starts must be (S >= 1, p), got shape {starts.shape}")
@@ -119,7 +127,11 @@ def multistart(solve: Callable[..., Solution], starts, *, log=None, resume: bool
                 fitlog.write_starts(starts, unit, seed)
         solutions = []
         for i, x0 in enumerate(starts):
-            solutions.append(solve(x0, log=fitlog, run=i, resume=resume, seed=seed))
+            budget = {}
+            if deadline is not None:
+                # The first start always evaluates its starting point, so there is a point to report.
+                budget["max_time"] = max(1e-9 if i == 0 else 0.0, deadline - time.perf_counter())
+            solutions.append(solve(x0, log=fitlog, run=i, resume=resume, seed=seed, **budget))
     finally:
         if owns:
             fitlog.close()

@@ -155,6 +155,11 @@ class FitSettings:
       start_ranges: name -> (lo, hi) replacing DEFAULT_START_RANGES (clipped to the bounds).
       starts: number of multi-start initial guesses (>= 1).
       max_iter: accepted iterations per start (None: DEFAULT_MAX_ITER of the optimizer).
+      time_budget: wall-time budget of the optimization (all starts together), s; None: unlimited. It is
+        checked before each iteration: a start stops when the time left is shorter than its previous
+        iteration took, and starts with no time left do not run. The best point found is then reported
+        (with a note), and the fit can be continued with `resume` under a new budget. Building the
+        simulator before, and the uncertainty and discretization check after, are not counted.
       seed: Latin-hypercube seed of the starts (and particle sampling seed).
       pixel_level: pyramid level of the observations (0 = the data's pixels, l = 2^l times larger);
         None picks the coarsest level whose pixels are not larger than the particle spacing.
@@ -187,6 +192,7 @@ class FitSettings:
     start_ranges: Mapping = dataclasses.field(default_factory=dict)
     starts: int = DEFAULT_STARTS
     max_iter: int | None = None
+    time_budget: float | None = None
     seed: int = 0
     pixel_level: int | None = None
     level: float = DEFAULT_LEVEL
@@ -226,6 +232,10 @@ class FitSettings:
             raise CalibrationError(f"starts must be >= 1, got {self.starts!r}")
         if self.max_iter is not None and int(self.max_iter) < 0:
             raise CalibrationError(f"max_iter must be >= 0, got {self.max_iter!r}")
+        if self.time_budget is not None and not (isinstance(self.time_budget, (int, float)) and
+                                                 math.isfinite(self.time_budget) and self.time_budget > 0):
+            raise CalibrationError(f"time_budget must be None or a positive number of seconds, got "
+                                   f"{self.time_budget!r}")
         if self.pixel_level is not None and int(self.pixel_level) < 0:
             raise CalibrationError(f"pixel_level must be >= 0, got {self.pixel_level!r}")
         if not 0.0 < self.level < 1.0:
@@ -898,9 +908,9 @@ def _format_params(d: dict, names) -> str:
 
 def _path_settings(settings: FitSettings) -> dict:
     """The settings the optimizer's path depends on (not the uncertainty options, nor the iteration
-    budget, which a resumed fit may extend), as JSON values."""
+    and time budgets, which a resumed fit may extend), as JSON values."""
     return json.loads(json.dumps({k: v for k, v in settings.to_dict().items()
-                                  if k not in ("dx_check", "level", "max_iter")}))
+                                  if k not in ("dx_check", "level", "max_iter", "time_budget")}))
 
 
 def _same_fit(logged: dict, fingerprint: dict) -> bool:
@@ -950,6 +960,7 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
         f"of dt = {sim.dt:.3g} s, images {problem.cfg.height}x{problem.cfg.width} px at level "
         f"{problem.pixel_level} ({problem.cfg.pixel_size:.3g} m/px); fitting {', '.join(names)} with "
         f"{settings.optimizer}, {settings.starts} start(s)"
+        + (f" within {settings.time_budget:.4g} s" if settings.time_budget is not None else "")
         + (f"; resampling every {sim.resample.every} substeps ({sim.state0.capacity} slots)" if sim.resample else "")
         + ("; fracture on" if sim.fracture else ""))
 
@@ -987,7 +998,8 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
         fitlog.flush()
     before = time.perf_counter() - wall0
     try:
-        ms = fitting.multistart(solve, starts, log=fitlog, resume=resume, seed=settings.seed, unit=unit)
+        ms = fitting.multistart(solve, starts, log=fitlog, resume=resume, seed=settings.seed, unit=unit,
+                                max_time=settings.time_budget)
     finally:
         if fitlog is not None:
             fitlog.close()
@@ -996,6 +1008,8 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
     # The lowest loss of any iterate of any start: Adam accepts every finite step, so its last
     # iterate need not be its best one (LM and L-BFGS only accept decreases).
     lows = [float(np.min(s.history.loss)) if len(s.history.loss) else math.inf for s in ms.solutions]
+    if not any(len(s.history.loss) for s in ms.solutions):
+        raise CalibrationError("no start was evaluated (time budget spent before the first): nothing to report")
     best_index = int(np.argmin(lows))
     best = ms.solutions[best_index]
     k_best = int(np.argmin(best.history.loss))
@@ -1052,6 +1066,18 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
         runs.append(dict(start=problem.params_of(starts[i]), end=problem.params_of(s.x), loss=float(s.loss),
                          reason=s.reason.value, iterations=int(s.iterations), evaluations=int(s.evaluations),
                          wall_time=float(s.wall_time)))
+    stopped = [i + 1 for i, s in enumerate(ms.solutions) if s.reason == fitting.Reason.MAX_TIME and len(s.history.loss)]
+    unstarted = [i + 1 for i, s in enumerate(ms.solutions) if s.reason == fitting.Reason.MAX_TIME
+                 and not len(s.history.loss)]
+    if stopped or unstarted:
+        said = []
+        if stopped:
+            said.append(f"stopped start(s) {', '.join(map(str, stopped))} before convergence")
+        if unstarted:
+            said.append(f"left start(s) {', '.join(map(str, unstarted))} unrun")
+        notes = tuple(notes) + (f"The time budget ({settings.time_budget:.4g} s) {' and '.join(said)}: the result is "
+                                f"the best point found so far. Continue with --resume (the fit log keeps every "
+                                f"iteration) and a new or no budget.",)
     settings_out = dict(settings.to_dict(), dx=problem.dx, ppc=FIT_PPC[problem.scene.dim]
                         if settings.ppc is None else int(settings.ppc),
                         pixel_level=problem.pixel_level, pixel_size_fit=problem.cfg.pixel_size,
@@ -1253,6 +1279,25 @@ def parse_fixed(text: str | None) -> dict:
     return out
 
 
+_DURATION_UNITS = {"": 1.0, "s": 1.0, "m": 60.0, "min": 60.0, "h": 3600.0}
+
+
+def parse_duration(text: str | None) -> float | None:
+    """The --time-budget option: '900', '900s', '15m', '15min' or '1.5h' -> seconds (None when absent)."""
+    if text is None:
+        return None
+    t = str(text).strip().lower()
+    number = t.rstrip("abcdefghijklmnopqrstuvwxyz")
+    unit = t[len(number):]
+    try:
+        seconds = float(number) * _DURATION_UNITS[unit]
+    except (ValueError, KeyError):
+        raise CalibrationError(f"--time-budget: expected a duration such as 900, 900s, 15m or 1.5h, got {text!r}") from None
+    if not (math.isfinite(seconds) and seconds > 0):
+        raise CalibrationError(f"--time-budget: must be a positive duration, got {text!r}")
+    return seconds
+
+
 def parse_bounds(text: str | None) -> dict:
     """'mu=50:400,m=0.3:1' -> {'mu': (50.0, 400.0), 'm': (0.3, 1.0)}."""
     if not text:
@@ -1311,6 +1356,9 @@ def add_fit_parser(subparsers) -> argparse.ArgumentParser:
     ap.add_argument("--max-iter", type=int, default=None,
                     help="iterations per start (default " + ", ".join(f"{k} {v}" for k, v in DEFAULT_MAX_ITER.items())
                     + ")")
+    ap.add_argument("--time-budget", default=None, metavar="DURATION",
+                    help="wall-time budget of the optimization, all starts together: 900 (s), 15m or 1.5h "
+                         "(default: none). The best point found is reported when it runs out; --resume continues")
     ap.add_argument("--seed", type=int, default=0, help="seed of the starts and particle sampling (default 0)")
     ap.add_argument("--pixel-level", type=int, default=None,
                     help="compare at 2^level larger pixels (default: the coarsest not larger than the particle spacing)")
@@ -1337,7 +1385,8 @@ def settings_from_args(args) -> FitSettings:
     """The validated `FitSettings` of parsed `fit` arguments."""
     return FitSettings(dx=args.dx, ppc=args.ppc, optimizer=args.optimizer, fixed=parse_fixed(args.fix),
                        bounds=parse_bounds(args.bounds), starts=args.starts, max_iter=args.max_iter,
-                       seed=args.seed, pixel_level=args.pixel_level, dtype=args.dtype,
+                       time_budget=parse_duration(getattr(args, "time_budget", None)), seed=args.seed,
+                       pixel_level=args.pixel_level, dtype=args.dtype,
                        dx_check=not args.no_dx_check,
                        resample=parse_feature(getattr(args, "resample", None), ResampleConfig, "resample"),
                        fracture=parse_feature(getattr(args, "fracture", None), FractureConfig, "fracture"),

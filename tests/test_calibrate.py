@@ -11,13 +11,15 @@ discretization; the measured error of this configuration is ~11% (discretization
 mapping gives (the start is 27.4 Pa; the loss at 0.6x and 1.4x the truth is 9x and 14x the loss at
 the fit).
 """
+import dataclasses
 import json
 
 import numpy as np
 import pytest
 
 from jaxfoam.calibrate import (FRAME_BOUNDARY_SPACINGS, CalibrationError, FitSettings, calibrate, choose_pixel_level,
-                               correlation_area, default_log_path, parse_bounds, parse_fixed, silhouette_mismatch)
+                               correlation_area, default_log_path, parse_bounds, parse_duration, parse_fixed,
+                               silhouette_mismatch)
 from jaxfoam.cli import main
 from jaxfoam.io import read_silhouettes
 from jaxfoam.synth import synthesize
@@ -86,6 +88,19 @@ class Interrupt(Exception):
     """Raised from the progress callback to kill a fit."""
 
 
+def resume_matches_reference(path, log, tmp_path, ref) -> dict:
+    """Run `jaxfoam fit --resume` on `log` and check it ends with the reference fit's loss history,
+    sigma_y and iteration count; returns the resumed fit.json."""
+    out = tmp_path / "resumed.json"
+    assert main(["fit", str(path), "--out", str(out), "--log", str(log), "--resume", "--no-plots",
+                 "--no-dx-check"] + FIT_ARGS) == 0
+    fit = json.loads(out.read_text())
+    np.testing.assert_allclose(fit["loss_history"], ref["loss_history"], rtol=1e-9)
+    np.testing.assert_allclose(fit["params"]["sigma_y"], ref["params"]["sigma_y"], rtol=1e-9)
+    assert fit["iterations"] == ref["iterations"]
+    return fit
+
+
 def test_resumed_fit_equals_uninterrupted_fit(slump, tmp_path):
     """A fit killed after iteration 2 and continued with `jaxfoam fit --resume` ends with the same
     parameters and loss history as the uninterrupted fit (the log restores the optimizer state exactly)."""
@@ -98,18 +113,29 @@ def test_resumed_fit_equals_uninterrupted_fit(slump, tmp_path):
 
     with pytest.raises(Interrupt):
         calibrate(read_silhouettes(path), SETTINGS, log=log, callback=kill)
-    out = tmp_path / "resumed.json"
-    assert main(["fit", str(path), "--out", str(out), "--log", str(log), "--resume", "--no-plots",
-                 "--no-dx-check"] + FIT_ARGS) == 0
-    fit = json.loads(out.read_text())
-    np.testing.assert_allclose(fit["loss_history"], ref["loss_history"], rtol=1e-9)
-    np.testing.assert_allclose(fit["params"]["sigma_y"], ref["params"]["sigma_y"], rtol=1e-9)
-    assert fit["iterations"] == ref["iterations"]
+    resume_matches_reference(path, log, tmp_path, ref)
 
     # The log belongs to this data and these settings: resuming it with others is refused.
     with pytest.raises(CalibrationError, match="cannot resume"):
         calibrate(read_silhouettes(path), FitSettings(dx=FIT_DX, fixed={"mu": 150.0, "eta": 5.0, "m": 0.5},
                                                       starts=1, max_iter=8), log=log, resume=True)
+
+
+def test_fit_stopped_by_its_time_budget_reports_its_start_and_resumes_to_the_full_fit(slump, tmp_path):
+    """A 1 us budget: the first evaluation (a rollout and its Jacobian) spends it, so the fit stops at
+    its starting point (iteration 0, reason max_time), reports that point with a note saying so, and
+    `jaxfoam fit --resume` without a budget then ends with the uninterrupted fit's loss history and
+    parameters. The budget is not part of what a log must match."""
+    path, _, ref = slump
+    log = tmp_path / "budget.fitlog.h5"
+    res = calibrate(read_silhouettes(path), dataclasses.replace(SETTINGS, time_budget=1e-6), log=log)
+    assert res.reason == "max_time" and res.iterations == 0 and res.runs[0]["reason"] == "max_time"
+    assert res.loss == pytest.approx(ref["loss_history"][0], rel=1e-9)
+    assert res.params["sigma_y"] == pytest.approx(ref["runs"][0]["start"]["sigma_y"], rel=1e-12)
+    assert any("time budget (1e-06 s) stopped start(s) 1 before convergence" in n for n in res.notes), res.notes
+    assert res.settings["time_budget"] == 1e-6
+    fit = resume_matches_reference(path, log, tmp_path, ref)
+    assert fit["reason"] == ref["reason"] and not any("time budget" in n for n in fit["notes"])
 
 
 def test_log_from_before_a_new_setting_resumes_only_at_its_default():
@@ -137,6 +163,13 @@ def test_cli_option_parsing_and_settings_errors():
         parse_fixed("nu=3")
     with pytest.raises(CalibrationError, match="--bounds: mu needs lo:hi"):
         parse_bounds("mu=20")
+    assert [parse_duration(t) for t in ("900", "900s", "15m", "15min", "1.5h", " 2M ")] == [900, 900, 900, 900, 5400, 120]
+    assert parse_duration(None) is None
+    for bad in ("15 parsecs", "0", "-5m", "m", "inf"):
+        with pytest.raises(CalibrationError, match="--time-budget"):
+            parse_duration(bad)
+    with pytest.raises(CalibrationError, match="time_budget must be None or a positive number of seconds"):
+        FitSettings(time_budget=0.0).validate()
     with pytest.raises(CalibrationError, match="optimizer"):
         FitSettings(optimizer="newton").validate()
     with pytest.raises(CalibrationError, match="nothing is left to fit"):

@@ -183,3 +183,72 @@ def test_fresh_fit_overwrites_the_log(tmp_path):
     data = F.read_fitlog(path)["runs"][0]
     assert data["loss"].shape == (sol.iterations + 1,) and data["meta"]["optimizer"]["name"] == "Adam"
     assert set(data["state"]) == {"loss", "grad", "m", "v", "t", "lr_scale", "status"}
+
+
+def slowed(fn, seconds):
+    """The oracle `fn`, taking at least `seconds` per call (a stand-in for an expensive rollout)."""
+    import time
+
+    def wrapped(x):
+        time.sleep(seconds)
+        return fn(x)
+
+    return wrapped
+
+
+def test_time_budget_stops_a_multistart_and_resume_finishes_it_bit_identically(tmp_path):
+    """Three LM starts on Rosenbrock residuals at >= 20 ms per evaluation under a 0.15 s budget (the
+    uninterrupted fit makes dozens of evaluations): the first start stops with reason MAX_TIME, a start
+    the budget left no time for is not evaluated (loss inf, empty history, nothing logged), and the
+    elapsed time overruns the budget by at most about one iteration. Resumed without a budget, every
+    start ends exactly as in the uninterrupted multi-start, and no evaluation is repeated."""
+    import time
+
+    tr = F.ParameterTransform.create(["x", "y"])
+    starts, unit = F.lhs_starts(tr, 3, seed=4, sample_bounds={"x": (-2.0, 2.0), "y": (-1.0, 3.0)})
+
+    def solver(fn):
+        return lambda x0, **kw: F.least_squares(fn, x0, with_jac=True, gtol=1e-12, **kw)
+
+    reference = F.multistart(solver(ROSEN_RJ), starts, seed=4, unit=unit)
+    assert sum(s.evaluations for s in reference.solutions) >= 20
+    path = tmp_path / "budget.h5"
+    t0 = time.perf_counter()
+    cut = F.multistart(solver(slowed(ROSEN_RJ, 0.02)), starts, log=path, seed=4, unit=unit, max_time=0.15)
+    elapsed = time.perf_counter() - t0
+    assert cut.solutions[0].reason == F.Reason.MAX_TIME
+    assert cut.solutions[0].iterations < reference.solutions[0].iterations
+    assert elapsed < 0.15 + 0.5  # one iteration (a few 20 ms evaluations) past the budget, not a whole start
+    logged = F.read_fitlog(path)["runs"]
+    for i, s in enumerate(cut.solutions):
+        if len(s.history.loss) == 0:  # not started: nothing evaluated or logged
+            assert s.reason == F.Reason.MAX_TIME and s.loss == np.inf and s.evaluations == 0 and i not in logged
+        else:
+            np.testing.assert_array_equal(s.history.loss, reference.solutions[i].history.loss[:len(s.history.loss)])
+    fn, calls = counted(ROSEN_RJ)
+    resumed = F.multistart(solver(fn), starts, log=path, resume=True, seed=4, unit=unit)
+    for a, b in zip(resumed.solutions, reference.solutions):
+        assert_same_solution(a, b)
+    assert calls[0] == sum(r.evaluations for r in reference.solutions) - sum(s.evaluations for s in cut.solutions)
+
+
+def test_zero_time_budget_evaluates_nothing_and_bad_budgets_are_refused(tmp_path):
+    """max_time = 0 evaluates and logs nothing; a multi-start whose budget the first evaluation spends
+    leaves its later starts unrun; negative, non-finite and non-numeric budgets are refused."""
+    fn, calls = counted(ROSEN_VG)
+    sol = F.minimize(fn, X0, F.LBFGS(), with_grad=True, max_time=0.0, log=tmp_path / "none.h5")
+    assert calls[0] == 0 and sol.reason == F.Reason.MAX_TIME and sol.loss == np.inf
+    assert sol.history.x.shape == (0, 2) and F.read_fitlog(tmp_path / "none.h5")["runs"] == {}
+    # A budget spent by the first start's first evaluation (>= 20 ms against 1 ms): that start stops
+    # at its starting point, the two after it are not run.
+    tr = F.ParameterTransform.create(["x", "y"])
+    starts, _ = F.lhs_starts(tr, 3, seed=4, sample_bounds={"x": (-2.0, 2.0), "y": (-1.0, 3.0)})
+    fn, calls = counted(slowed(ROSEN_RJ, 0.02))
+    ms = F.multistart(lambda x0, **kw: F.least_squares(fn, x0, with_jac=True, **kw), starts, max_time=0.001)
+    assert calls[0] == 1 and [s.reason for s in ms.solutions] == [F.Reason.MAX_TIME] * 3
+    assert [len(s.history.loss) for s in ms.solutions] == [1, 0, 0] and ms.best_index == 0
+    for bad in (-1.0, float("nan"), float("inf"), "10"):
+        with pytest.raises(ValueError, match="max_time"):
+            F.minimize(ROSEN_VG, X0, F.LBFGS(), with_grad=True, max_time=bad)
+    with pytest.raises(ValueError, match="max_time"):
+        F.multistart(lambda x0, **kw: None, np.zeros((1, 2)), max_time=-1.0)
