@@ -537,6 +537,68 @@ def _floor_rule(v, scene: Scene):
     return jnp.where((vn < 0)[..., None], friction, v)
 
 
+# Particle floor contact: a particle touches the floor when the gap below its extent is at most this
+# fraction of its half-extent (`particle_floor`) or of dx (`floor_touch`): round-off of the landing
+# step, which puts the gap at 0.
+FLOOR_TOUCH = 1e-6
+
+
+def particle_floor(x, v, vol0, scene: Scene, dt):
+    """Floor contact on particles (scene.floor_contact == "particle"): velocities (N, d) m/s.
+
+    A particle's half-extent is r = vol0^(1/d) / 2 m (half its sampling spacing: the extent the
+    silhouette renderer gives it). It may not end the substep with its extent below the floor: with
+    gap = y - r - floor_y (m), a downward v_y < -max(gap, 0) / dt is raised to that, so it lands on
+    the floor (a particle that already overlaps it, as a jittered initial sample may, goes no deeper). The normal velocity so removed, dv (m/s), is Coulomb's impulse per unit mass: the tangential
+    speed drops by friction * dv (not below 0). On a sticky floor such a particle, and one touching the
+    floor (gap <= FLOOR_TOUCH r), loses its tangential velocity and cannot lift off.
+    x (N, d) m, v (N, d) m/s, vol0 (N,) m^d (m^2 in 2D), dt s.
+    """
+    d = x.shape[1]
+    has = vol0 > 0
+    r = jnp.where(has, 0.5 * jnp.power(jnp.where(has, vol0, 1.0), 1.0 / d), 0.0)
+    gap = x[:, 1] - r - scene.floor_y
+    # A particle already overlapping the floor (a jittered initial sample) is not pushed out, only
+    # kept from going deeper: pushing it out within one substep would launch it.
+    vmin = -_pos_part(gap) / dt
+    vy = v[:, 1]
+    hit = vy < vmin
+    tang = [k for k in range(d) if k != 1]
+    if scene.floor_sticky:
+        held = hit | (gap <= FLOOR_TOUCH * r)
+        new_vy = jnp.where(hit, vmin, jnp.where(held, 0.0, vy))
+        cols = {k: jnp.where(held, 0.0, v[:, k]) for k in tang}
+    else:
+        dv = jnp.where(hit, vmin - vy, 0.0)
+        new_vy = jnp.where(hit, vmin, vy)
+        sq = sum(v[:, k] * v[:, k] for k in tang)
+        pos = sq > 0
+        speed = jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)
+        scale = jnp.where(pos, _pos_part(speed - scene.floor_friction * dv) / jnp.where(pos, speed, 1.0), 0.0)
+        cols = {k: v[:, k] * scale for k in tang}
+    cols[1] = new_vy
+    return jnp.stack([cols[k] for k in range(d)], axis=1)
+
+
+def floor_touch(x, vol0, active, grid: Grid, scene: Scene, idx0=None) -> jax.Array:
+    """(G,) bool, for particle floor contact: the nodes whose stencil support holds a particle whose
+    extent (half-size vol0^(1/d) / 2, m) reaches the floor (to FLOOR_TOUCH dx). Only those of the
+    nodes at or below the floor take the floor's rule, so the grid holds material that touches the
+    floor, not material that merely comes within a stencil's reach of it (a decision on values, not
+    differentiated). x (N, d) m, vol0 (N,) m^d, active (N,) bool; idx0 the stencil base index."""
+    d = x.shape[1]
+    has = active & (vol0 > 0)
+    r = jnp.where(has, 0.5 * jnp.power(jnp.where(has, vol0, 1.0), 1.0 / d), 0.0)
+    low = jax.lax.stop_gradient(jnp.where(has, x[:, 1] - r, jnp.inf))
+    if idx0 is None:
+        idx0 = _flat_index(_stencil(x, grid)[0], (0,) * d, grid)
+    idx0 = jax.lax.stop_gradient(idx0)
+    idx = jnp.concatenate([idx0 + _offset_index(off, grid) for off in _offsets(d)])
+    lowest = jnp.full((grid.num_nodes,), jnp.inf, x.dtype).at[idx].min(jnp.tile(low, 3 ** d),
+                                                                        mode=_IN_BOUNDS)
+    return lowest <= scene.floor_y + FLOOR_TOUCH * grid.dx
+
+
 def _wall_rule(vk, low: bool):
     """A slip wall on velocity component k at a node on or beyond it: the outward part removed."""
     return _pos_part(vk) if low else _neg_part(vk)
@@ -550,13 +612,15 @@ def _floor_layers(grid: Grid, dtype, floor_y: float) -> int:
 
 
 def apply_colliders(v, node_x, scene: Scene, t, colliders=(), grid_m=None, dt=None, dx=None,
-                    grid: Grid | None = None) -> jax.Array:
+                    grid: Grid | None = None, touch=None) -> jax.Array:
     """Boundary conditions on grid velocities v (G, d) m/s at nodes node_x (G, d) m, time t s.
 
     - plates: nodes inside a plate take its velocity (sticky) or lose the approaching normal
       component relative to it (slip);
     - floor (y <= floor_y): no slip when sticky, else Coulomb friction with the scene coefficient
-      on approaching nodes;
+      on approaching nodes; with particle contact (scene.floor_contact == "particle") only where
+      `touch` (G,) bool (`floor_touch`) is true, and the bottom wall then acts no higher than half
+      a cell below the floor;
     - domain walls: slip (outward normal velocity removed) on nodes on or beyond the boundary;
     - colliders: extra static colliders, each with `apply(v, node_x, t) -> v` (e.g.
       `jaxfoam.sdf.SDFCollider`), applied last, in order; a collider with a finite `adhesion` (Pa)
@@ -584,21 +648,37 @@ def apply_colliders(v, node_x, scene: Scene, t, colliders=(), grid_m=None, dt=No
             vn = sum(vrel[:, k] * normal[:, k] for k in range(d))
             vrel = vrel - _neg_part(vn)[:, None] * normal
             v = jnp.where(inside[:, None], vp[None, :] + vrel, v)
+    wall_lo = np.asarray(scene.domain_min, np.float64).copy()
     if scene.floor_y is not None:
+        particle = scene.floor_contact == "particle"
+        if particle:
+            if touch is None:
+                raise ValueError("a floor with particle contact needs `touch` (jaxfoam._mpm.floor_touch)")
+            spacing = grid.dx if grid is not None else dx
+            if spacing is None:
+                raise ValueError("a floor with particle contact needs the grid spacing dx")
+            # The bottom wall must not hold up material that has not reached the floor either.
+            wall_lo[1] = min(wall_lo[1], scene.floor_y - 0.5 * float(spacing))
         if grid is None:
             below = node_x[:, 1] <= scene.floor_y
+            if particle:
+                below = below & touch
             v = jnp.where(below[:, None], _floor_rule(v, scene), v)
         else:
             floor_n = _floor_layers(grid, np.dtype(v.dtype), scene.floor_y)
             v = v.reshape(tuple(grid.shape) + (d,))
-            v = v.at[:, :floor_n].set(_floor_rule(v[:, :floor_n], scene)).reshape(-1, d)
+            rows = v[:, :floor_n]
+            ruled = _floor_rule(rows, scene)
+            if particle:
+                ruled = jnp.where(touch.reshape(tuple(grid.shape))[:, :floor_n, ..., None], ruled, rows)
+            v = v.at[:, :floor_n].set(ruled).reshape(-1, d)
     if grid is None:
-        lo = jnp.asarray(scene.domain_min, v.dtype)
+        lo = jnp.asarray(wall_lo, v.dtype)
         hi = jnp.asarray(scene.domain_max, v.dtype)
         at_lo, at_hi = node_x <= lo[None, :], node_x >= hi[None, :]
     else:
         pos = grid.node_positions(np.dtype(v.dtype), xp=np)
-        at_lo = pos <= np.asarray(scene.domain_min, pos.dtype)[None, :]
+        at_lo = pos <= np.asarray(wall_lo, pos.dtype)[None, :]
         at_hi = pos >= np.asarray(scene.domain_max, pos.dtype)[None, :]
     v = jnp.where(at_lo, _wall_rule(v, True), v)
     v = jnp.where(at_hi, _wall_rule(v, False), v)
@@ -610,14 +690,15 @@ def apply_colliders(v, node_x, scene: Scene, t, colliders=(), grid_m=None, dt=No
     return v
 
 
-def grid_update(grid_mv, grid_m, scene: Scene, grid: Grid, t, dt, colliders=()) -> jax.Array:
-    """Grid velocities (G, d) m/s at the end of the substep: momentum / mass, gravity, colliders."""
+def grid_update(grid_mv, grid_m, scene: Scene, grid: Grid, t, dt, colliders=(), touch=None) -> jax.Array:
+    """Grid velocities (G, d) m/s at the end of the substep: momentum / mass, gravity, colliders
+    (touch: `floor_touch`'s nodes, for a floor with particle contact)."""
     v = safe_div(grid_mv, grid_m[:, None])
     v = v + jnp.where(grid_m[:, None] > 0, dt * scene.gravity.astype(v.dtype)[None, :], 0.0)
     # Reverse mode: the colliders' transpose is computed once into a buffer (jaxfoam._fusion).
     v = materialize_tangent(v, dt)
     return apply_colliders(v, grid.node_positions(v.dtype), scene, t + dt, colliders, grid_m, dt, grid.dx,
-                           grid=grid)
+                           grid=grid, touch=touch)
 
 
 def g2p(state: State, grid_v, grid: Grid) -> tuple[jax.Array, jax.Array]:
@@ -708,17 +789,20 @@ def _g2p_transfer_bwd(grid, res, ct):
 _g2p_transfer.defvjp(_g2p_transfer_fwd, _g2p_transfer_bwd)
 
 
-def constitutive(state: State, v, C, params: Params, grid: Grid, dt) -> State:
+def constitutive(state: State, v, C, params: Params, grid: Grid, dt, scene: Scene | None = None) -> State:
     """Advance F and bbar_e with f = I + dt C (eq. 11-16), advect positions, keep them on the grid.
 
-    v (N, d) m/s and C (N, d, d) 1/s from `g2p`; returns the state in the form it was given in."""
-    new = _constitutive(to_components(state), v, _comps(C), params, grid, dt)
+    v (N, d) m/s and C (N, d, d) 1/s from `g2p`; returns the state in the form it was given in.
+    scene: with a floor of particle contact, `particle_floor` limits v before the advection."""
+    new = _constitutive(to_components(state), v, _comps(C), params, grid, dt, scene)
     return new if isinstance(state.F, tuple) else from_components(new)
 
 
-def _constitutive(state: State, v, Cc, params: Params, grid: Grid, dt) -> State:
+def _constitutive(state: State, v, Cc, params: Params, grid: Grid, dt, scene: Scene | None = None) -> State:
     """`constitutive` on the component form (`to_components`), C given as components."""
     d = state.dim
+    if scene is not None and scene.floor_y is not None and scene.floor_contact == "particle":
+        v = particle_floor(state.x, v, state.vol0, scene, dt)
     like = state.x[:, 0]
     fc = T.add_diag(T.scale(Cc, dt), 1.0)
     F = T.matmul(fc, state.F)
@@ -772,14 +856,17 @@ def _substep(state: State, params: Params, scene: Scene, grid: Grid, dt, fractur
     idx0 = hoist(_flat_index(_stencil(state.x, grid)[0], (0,) * state.dim, grid), state.t)
     with jax.named_scope("p2g"):
         grid_mv, grid_m = p2g(state, params, grid, dt, idx0, hand_adjoint)
+    touch = None
+    if scene.floor_y is not None and scene.floor_contact == "particle":
+        touch = floor_touch(state.x, state.vol0, state.active, grid, scene, idx0)
     with jax.named_scope("grid_update"):
-        grid_v = grid_update(grid_mv, grid_m, scene, grid, state.t, dt, colliders)
+        grid_v = grid_update(grid_mv, grid_m, scene, grid, state.t, dt, colliders, touch)
     with jax.named_scope("g2p"):
         v, C = _g2p(state, grid_v, grid, idx0, hand_adjoint)
         # Named: kept by reverse mode's per-substep rematerialization (jaxfoam._simulate.REMAT_SAVED).
         v, C = checkpoint_name((v, C), "g2p")
     with jax.named_scope("constitutive"):
-        new = _constitutive(state, v, C, params, grid, dt)
+        new = _constitutive(state, v, C, params, grid, dt, scene)
     if fracture is not None:
         with jax.named_scope("fracture"):
             new = to_components(fracture.apply(from_components(new), from_components(state), grid_m, grid))

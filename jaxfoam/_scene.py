@@ -24,7 +24,11 @@ MOTION_KEYS = {
     "samples": {"type", "times", "positions"},
 }
 SHAPE_KEYS = {"first_mask": {"type"}, "box": {"type", "min", "max"}, "ellipse": {"type", "center", "radii"}}
-FLOOR_KEYS = {"y", "friction"}
+FLOOR_KEYS = {"y", "friction", "contact"}
+# Floor contact models (docs/data.md): "grid" applies the floor's rule to the grid nodes at or below it
+# (the material then rests up to about a cell above a floor it lands on); "particle" applies it to
+# each particle's extent (jaxfoam._mpm.particle_floor), so a landed foam's edge lies on the floor.
+FLOOR_CONTACTS = ("grid", "particle")
 
 # Particles per cell: 2 per axis is the MPM standard (Stomakhin 2013), enough to keep every cell
 # of the material covered under moderate stretch.
@@ -88,7 +92,8 @@ class Scene:
     Attributes:
       gravity: (d,) m/s^2.  plates: tuple of Plate.  floor_friction: Coulomb coefficient (scalar).
       kind, dim, density (kg/m^3), kappa (Pa), domain_min/max (m), floor_y (m or None),
-      floor_sticky, initial_shape (the JSON dict, frozen), initial_velocity (m/s), source (JSON text):
+      floor_sticky, floor_contact ("grid" or "particle", FLOOR_CONTACTS), initial_shape (the JSON dict,
+      frozen), initial_velocity (m/s), source (JSON text):
       static.
     """
 
@@ -103,6 +108,7 @@ class Scene:
     domain_max: tuple = dataclasses.field(metadata=dict(static=True), default=())
     floor_y: float | None = dataclasses.field(metadata=dict(static=True), default=None)
     floor_sticky: bool = dataclasses.field(metadata=dict(static=True), default=False)
+    floor_contact: str = dataclasses.field(metadata=dict(static=True), default="grid")
     initial_velocity: tuple = dataclasses.field(metadata=dict(static=True), default=())
     source: str = dataclasses.field(metadata=dict(static=True), default="{}")
 
@@ -222,7 +228,8 @@ def load_scene(scene: str | os.PathLike | dict, dtype=jnp.float64) -> Scene:
 
     Accepted keys: kind (hanging_plate | drop | squeeze), dim (2 | 3), gravity (d numbers, m/s^2,
     default [0, -9.81(, 0)]), density (kg/m^3 > 0), kappa (Pa > 0), domain {min, max} (m), floor
-    {y (m), friction (>= 0 or "sticky")} (optional), plate (one plate) or plates (a list),
+    {y (m), friction (>= 0 or "sticky"), contact ("grid" | "particle", default "grid")} (optional),
+    plate (one plate) or plates (a list),
     initial_shape (first_mask | box | ellipse), initial_velocity (d numbers, m/s, optional),
     name, notes (free text). A hanging_plate scene needs exactly one plate, a squeeze scene at least one.
     Raises SceneError (a ValueError) naming the offending field.
@@ -262,10 +269,13 @@ def load_scene(scene: str | os.PathLike | dict, dtype=jnp.float64) -> Scene:
     dmax = _vec(dom["max"], "domain.max", d)
     if np.any(dmax <= dmin):
         _err("domain", f"max must exceed min on every axis, got min {dmin.tolist()} max {dmax.tolist()}")
-    floor_y, sticky, friction = None, False, 0.0
+    floor_y, sticky, friction, contact = None, False, 0.0, "grid"
     if "floor" in spec:
         fl = spec["floor"]
         _keys(fl, FLOOR_KEYS, "floor")
+        contact = fl.get("contact", "grid")
+        if contact not in FLOOR_CONTACTS:
+            _err("floor.contact", f"expected one of {FLOOR_CONTACTS}, got {contact!r}")
         floor_y = _num(fl.get("y", float(dmin[1])), "floor.y")
         fr = fl.get("friction", 0.0)
         if fr == "sticky":
@@ -303,7 +313,8 @@ def load_scene(scene: str | os.PathLike | dict, dtype=jnp.float64) -> Scene:
     return Scene(
         gravity=jnp.asarray(gravity, dtype), plates=plates, floor_friction=jnp.asarray(friction, dtype),
         kind=kind, dim=d, density=density, kappa=kappa, domain_min=tuple(dmin.tolist()),
-        domain_max=tuple(dmax.tolist()), floor_y=floor_y, floor_sticky=sticky, initial_velocity=v0,
+        domain_max=tuple(dmax.tolist()), floor_y=floor_y, floor_sticky=sticky, floor_contact=contact,
+        initial_velocity=v0,
         source=json.dumps(spec, sort_keys=True))
 
 

@@ -59,7 +59,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._constitutive import det
-from ._mpm import Grid, _flat_index, _offsets, _stencil, _stencil_weights, apply_colliders, p2g, safe_div
+from ._mpm import Grid, _flat_index, _offsets, _stencil, _stencil_weights, apply_colliders, floor_touch, p2g, safe_div
 from ._params import Params
 from ._scene import Scene
 from ._state import State
@@ -280,7 +280,10 @@ def collider_force(state: State, params: Params, scene: Scene, grid: Grid, dt, r
     v = safe_div(grid_mv, grid_m[:, None])
     v = v + jnp.where(grid_m[:, None] > 0, dt * scene.gravity.astype(v.dtype)[None, :], 0.0)
     node_x = grid.node_positions(v.dtype)
-    after = apply_colliders(v, node_x, scene, state.t + dt, colliders, grid_m, dt, grid.dx, grid=grid)
+    touch = None
+    if scene.floor_y is not None and scene.floor_contact == "particle":
+        touch = floor_touch(state.x, state.vol0, state.active, grid, scene)
+    after = apply_colliders(v, node_x, scene, state.t + dt, colliders, grid_m, dt, grid.dx, grid=grid, touch=touch)
     dp = grid_m[:, None] * (after - v) / dt
     if region is not None:
         dp = jnp.where(region(node_x)[:, None], dp, 0.0)
