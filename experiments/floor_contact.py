@@ -10,9 +10,12 @@ what differs between the two grids once the foam has landed:
 - the mean distance between the silhouette at each frame and the finest run's (2.5 mm), mm: the
   fitter's goodness-of-fit measure (`jaxfoam.calibrate.silhouette_mismatch`: area of the symmetric
   difference over the finest run's perimeter) on rasters of disks of 0.75 particle spacings;
-- the same with a frictionless floor (friction 0), to separate the floor's friction from the rest.
+- the same with a frictionless floor (friction 0), to separate the floor's friction from the rest;
+- the same floor with particle contact (`"floor": {"contact": "particle"}`: the floor holds a particle
+  once its extent touches it, not as soon as its stencil reaches the floor's node row), to separate
+  the grid-contact gap from the rest.
 
-Usage: python -m experiments floor_contact [--quick]   (quick: set 0 only, friction 0.5 only)
+Usage: python -m experiments floor_contact [--quick]   (quick: set 0 only, friction 0.5 only, both contacts)
 Writes experiments/results/floor_contact[_quick].md. SI units; lengths in the table in mm.
 """
 from __future__ import annotations
@@ -31,15 +34,19 @@ SCENE = "drop_2d"
 DURATION = 0.4  # s, the recovery study's drop duration
 FRAMES = 8
 DXS = (0.01, 0.005, 0.0025)  # m: the study's fit grid, its data grid, and a finer reference
-FRICTIONS = (0.5, 0.0)  # the scene's Coulomb coefficient, and a frictionless floor
+# Floors: (Coulomb coefficient, contact model): the scene's floor, a frictionless one, the scene's with
+# particle contact.
+FLOORS = ((0.5, "grid"), (0.0, "grid"), (0.5, "particle"))
 PIXEL = 0.001  # m, raster pixel of the silhouette comparison
 DISK = 0.75  # particle spacings (dx / 2 at 4 particles per cell): disk radius of the raster
 
 
-def run(truth: dict, friction: float, dx: float) -> dict:
-    """Roll the drop out at dx with the given floor friction; per-frame positions of the active particles."""
+def run(truth: dict, friction: float, contact: str, dx: float) -> dict:
+    """Roll the drop out at dx with the given floor friction and contact model; per-frame rasters and
+    end-of-run lengths of the active particles."""
     spec = json.loads((SCENES / f"{SCENE}.json").read_text())
     spec["floor"]["friction"] = friction
+    spec["floor"]["contact"] = contact
     scene = jaxfoam.load_scene(spec)
     p = jaxfoam.Params(mu=truth["mu"], kappa=scene.kappa, sigma_y=truth["sigma_y"], eta=truth["eta"],
                        m=truth["m"], rho=scene.density)
@@ -60,31 +67,32 @@ def run(truth: dict, friction: float, dx: float) -> dict:
 def main(argv=None):
     args = C.parse_args(__doc__, argv)
     sets = [0] if args.quick else [0, 1, 2]
-    frictions = FRICTIONS[:1] if args.quick else FRICTIONS
+    floors = [f for f in FLOORS if f[0] == 0.5] if args.quick else FLOORS
     truths = truth_sets()
     rows, dist_rows = [], []
     for k in sets:
-        for fr in frictions:
-            runs = [run(truths[k], fr, dx) for dx in DXS]
+        for fr, contact in floors:
+            runs = [run(truths[k], fr, contact, dx) for dx in DXS]
             ref = runs[-1]
             for r in runs:
                 # the fitter's goodness-of-fit measure, with the finest run as the observation
                 d = silhouette_mismatch(np.stack(r["rasters"]).astype(float), np.stack(ref["rasters"]).astype(float),
                                         np.ones((FRAMES,) + ref["rasters"][0].shape), PIXEL)[1]
-                rows.append([k, fr, r["dx"] * 1e3, r["ymin"] * 1e3, r["ymin"] / r["dx"], r["ymax"] * 1e3,
+                rows.append([k, fr, contact, r["dx"] * 1e3, r["ymin"] * 1e3, r["ymin"] / r["dx"], r["ymax"] * 1e3,
                              r["width"] * 1e3, r["xmax"] * 1e3, r["cy"] * 1e3, r["wall"]])
                 if r is not ref:
-                    dist_rows.append([k, fr, r["dx"] * 1e3] + [v * 1e3 for v in d] + [float(np.mean(d)) * 1e3])
-            print(f"set {k} friction {fr}: done", flush=True)
-    header = ["set", "friction", "dx (mm)", "lowest particle (mm)", "lowest particle / dx", "top (mm)",
+                    dist_rows.append([k, fr, contact, r["dx"] * 1e3] + [v * 1e3 for v in d]
+                                     + [float(np.mean(d)) * 1e3])
+            print(f"set {k} friction {fr} {contact} contact: done", flush=True)
+    header = ["set", "friction", "contact", "dx (mm)", "lowest particle (mm)", "lowest particle / dx", "top (mm)",
               "width (mm)", "right edge (mm)", "centroid height (mm)", "rollout wall (s)"]
     times = np.linspace(DURATION / FRAMES, DURATION, FRAMES)
-    dheader = ["set", "friction", "dx (mm)"] + [f"t={t:.2f} s" for t in times] + ["mean"]
+    dheader = ["set", "friction", "contact", "dx (mm)"] + [f"t={t:.2f} s" for t in times] + ["mean"]
     body = (f"Scene `{SCENE}` (floor at y = 0 on a node row, 4 particles per cell, the study's true parameter "
             f"sets {sets}), {DURATION} s, {FRAMES} frames, float64. Lengths at the last frame ({DURATION} s), mm.\n\n"
             + C.md_table(header, rows)
-            + f"\nMean distance between each run's silhouette and the {DXS[-1] * 1e3:g} mm run's of the same set and "
-              "friction, per frame, mm:\n\n" + C.md_table(dheader, dist_rows) + "\n" + verdict(rows, dist_rows) + "\n")
+            + f"\nMean distance between each run's silhouette and the {DXS[-1] * 1e3:g} mm run's of the same set, "
+              "friction and contact, per frame, mm:\n\n" + C.md_table(dheader, dist_rows) + "\n" + verdict(rows, dist_rows) + "\n")
     C.write_md("floor_contact", args.quick, "Floor contact of the drop across grid spacings", body)
 
 
@@ -92,20 +100,20 @@ def verdict(rows, dist_rows) -> str:
     """What the tables say, from their own numbers (columns as in `main`)."""
     lines = []
     for k in sorted({r[0] for r in rows}):
-        for fr in FRICTIONS:
-            rs = sorted((r for r in rows if r[0] == k and r[1] == fr), key=lambda r: -r[2])
+        for fr, contact in FLOORS:
+            rs = sorted((r for r in rows if r[0] == k and r[1] == fr and r[2] == contact), key=lambda r: -r[3])
             if not rs:
                 continue
-            dx = ", ".join(f"{r[2]:g}" for r in rs)
-            line = (f"- Set {k}, friction {fr:g}, dx {dx} mm: lowest particle "
-                    f"{', '.join(f'{r[4]:.2f}' for r in rs)} cells above the floor; width "
-                    f"{', '.join(f'{r[6]:.0f}' for r in rs)} mm; centroid height "
-                    f"{', '.join(f'{r[8]:.1f}' for r in rs)} mm")
-            walls = [r for r in rs if r[7] >= 140.0]
+            dx = ", ".join(f"{r[3]:g}" for r in rs)
+            line = (f"- Set {k}, friction {fr:g}, {contact} contact, dx {dx} mm: lowest particle "
+                    f"{', '.join(f'{r[5]:.2f}' for r in rs)} cells above the floor; width "
+                    f"{', '.join(f'{r[7]:.0f}' for r in rs)} mm; centroid height "
+                    f"{', '.join(f'{r[9]:.1f}' for r in rs)} mm")
+            walls = [r for r in rs if r[8] >= 140.0]
             if walls:
-                line += f"; the right edge reaches {min(r[7] for r in walls):.0f}-{max(r[7] for r in walls):.0f} mm at dx " \
-                        f"{', '.join(f'{r[2]:g}' for r in walls)} mm (the wall is at 150 mm)"
-            d = {r[2]: r[-1] for r in dist_rows if r[0] == k and r[1] == fr}
+                line += f"; the right edge reaches {min(r[8] for r in walls):.0f}-{max(r[8] for r in walls):.0f} mm at dx " \
+                        f"{', '.join(f'{r[3]:g}' for r in walls)} mm (the wall is at 150 mm)"
+            d = {r[3]: r[-1] for r in dist_rows if r[0] == k and r[1] == fr and r[2] == contact}
             if d:
                 line += ("; mean silhouette distance to the finest run " +
                          ", ".join(f"{d[h]:.2f} mm at {h:g} mm" for h in sorted(d, reverse=True)))
