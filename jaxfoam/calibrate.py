@@ -39,6 +39,9 @@ import hashlib
 import json
 import math
 import os
+import signal
+import sys
+import threading
 import time
 from pathlib import Path
 from typing import Callable, Mapping
@@ -1393,6 +1396,29 @@ def settings_from_args(args) -> FitSettings:
                        ).validate()
 
 
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM (a job scheduler's or `timeout`'s stop) delivered to a running fit."""
+
+
+class _terminate_as_interrupt:
+    """Within the block, SIGTERM raises `_Terminated` like Ctrl-C raises KeyboardInterrupt, so a stopped
+    fit ends with a message on how to resume instead of silently (main thread only; a no-op elsewhere)."""
+
+    def __enter__(self):
+        self.previous = None
+        if threading.current_thread() is threading.main_thread():
+            def stop(signum, frame):
+                raise _Terminated
+
+            self.previous = signal.signal(signal.SIGTERM, stop)
+        return self
+
+    def __exit__(self, *exc):
+        if self.previous is not None:
+            signal.signal(signal.SIGTERM, self.previous)
+        return False
+
+
 def run_fit(args) -> int:
     """Run the `fit` subcommand from parsed arguments; returns the exit status."""
     settings = settings_from_args(args)
@@ -1406,7 +1432,14 @@ def run_fit(args) -> int:
     def say(msg):
         print(msg, flush=True)
 
-    result = calibrate(data, settings, log=log, resume=args.resume, progress=say, problem=problem)
+    try:
+        with _terminate_as_interrupt():
+            result = calibrate(data, settings, log=log, resume=args.resume, progress=say, problem=problem)
+    except KeyboardInterrupt as exc:
+        sys.stderr.write(f"\njaxfoam fit: {'terminated' if isinstance(exc, _Terminated) else 'interrupted'}; the fit "
+                         f"log {log} keeps every finished iteration: run the same command with --resume to "
+                         f"continue\n")
+        return 143 if isinstance(exc, _Terminated) else 130
     result.write(out)
     print(result.report())
     print(f"wrote {out} (fit log {log})")

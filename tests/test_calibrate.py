@@ -319,3 +319,34 @@ def test_threaded_jacobian_columns_match_sequential_groups_and_finite_difference
     rp, rm = (np.asarray(problem.residual_and_jacobian(z + s * e)[0]) for s in (1, -1))
     fd = (rp - rm) / (2 * h)
     assert np.linalg.norm(fd - J[:, 2]) <= 1e-4 * np.linalg.norm(J[:, 2])
+
+
+def test_a_stopped_fit_says_how_to_resume(slump, tmp_path, capsys, monkeypatch):
+    """SIGTERM (as `timeout` or a scheduler sends it) during `jaxfoam fit` ends the command with exit
+    status 143 and a message naming the fit log and --resume, and restores the previous SIGTERM
+    handler; the log then holds the iterations done, and the same command with --resume ends with the
+    uninterrupted fit's result."""
+    import os
+    import signal
+
+    import jaxfoam.calibrate as cal
+
+    path, _, ref = slump
+    log = tmp_path / "stopped.fitlog.h5"
+
+    def stop_after_two(info, theta):
+        if info.iteration == 2:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    original = cal.calibrate
+    monkeypatch.setattr(cal, "calibrate", lambda *a, **kw: original(*a, callback=stop_after_two, **kw))
+    before = signal.getsignal(signal.SIGTERM)
+    code = main(["fit", str(path), "--out", str(tmp_path / "stopped.json"), "--log", str(log), "--no-plots",
+                 "--no-dx-check"] + FIT_ARGS)
+    assert code == 143
+    err = capsys.readouterr().err
+    assert "terminated" in err and str(log) in err and "--resume" in err
+    assert not (tmp_path / "stopped.json").exists()
+    assert signal.getsignal(signal.SIGTERM) == before
+    monkeypatch.undo()
+    resume_matches_reference(path, log, tmp_path, ref)
