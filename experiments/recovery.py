@@ -227,8 +227,8 @@ not a coarse grid that fits the data with wrong parameters: the squeeze fits rep
   parameters, the mean distance between the fit grid's silhouette and the data, in particle spacings).
   The hanging plate's set 0, whose mu came out +1%, stays within 0.11-0.34 spacings in every frame.
   The squeeze stays within 0.25-0.41 while it is squeezed and held (to 0.76 s), and reaches 0.5-1.5 once
-  the plate lifts the foam stuck to it. The drop reaches 0.74-1.28 after landing, as the foam spreads
-  over the rough floor. The hanging plate's set 1 stays within 0.11-0.65 until 0.65 s and is at
+  the plate lifts the foam stuck to it. The drop is at 0.34-0.44 before it lands and at 0.54-1.28
+  after (from 0.11 s), as the foam spreads over the rough floor. The hanging plate's set 1 stays within 0.11-0.65 until 0.65 s and is at
   1.49-1.53 at 0.73-0.80 s, and its set 2 (the weak foam that tears off) reaches 2.2-6.4. The fits
   move the parameters to match those phases: stretching, tearing and the sheared layer on a rough
   floor, which the fit grid resolves worst.
