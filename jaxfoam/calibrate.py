@@ -158,6 +158,9 @@ class FitSettings:
       start_ranges: name -> (lo, hi) replacing DEFAULT_START_RANGES (clipped to the bounds).
       starts: number of multi-start initial guesses (>= 1).
       max_iter: accepted iterations per start (None: DEFAULT_MAX_ITER of the optimizer).
+      time_window: (t_lo, t_hi), s: fit only the frames whose times lie in it (None: every frame after the
+        start); the rollouts then stop at the last of them. For data whose late phase the model (or a
+        coarse grid) does not resolve, e.g. foam tearing off a plate.
       time_budget: wall-time budget of the optimization (all starts together), s; None: unlimited. It is
         checked before each iteration: a start stops when the time left is shorter than its previous
         iteration took, and starts with no time left do not run. The best point found is then reported
@@ -196,6 +199,7 @@ class FitSettings:
     starts: int = DEFAULT_STARTS
     max_iter: int | None = None
     time_budget: float | None = None
+    time_window: tuple | None = None
     seed: int = 0
     pixel_level: int | None = None
     level: float = DEFAULT_LEVEL
@@ -239,6 +243,13 @@ class FitSettings:
                                                  math.isfinite(self.time_budget) and self.time_budget > 0):
             raise CalibrationError(f"time_budget must be None or a positive number of seconds, got "
                                    f"{self.time_budget!r}")
+        if self.time_window is not None:
+            try:
+                lo, hi = (float(v) for v in self.time_window)
+            except (TypeError, ValueError):
+                raise CalibrationError(f"time_window must be (t_lo, t_hi) in s, got {self.time_window!r}") from None
+            if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 <= lo < hi):
+                raise CalibrationError(f"time_window needs finite 0 <= t_lo < t_hi in s, got {lo}:{hi}")
         if self.pixel_level is not None and int(self.pixel_level) < 0:
             raise CalibrationError(f"pixel_level must be >= 0, got {self.pixel_level!r}")
         if not 0.0 < self.level < 1.0:
@@ -736,6 +747,12 @@ def build_problem(data: Silhouettes, settings: FitSettings | None = None) -> Cal
     if len(used) == 0:
         raise CalibrationError(f"times: no frame after the start of the simulation (t0 = {t0} s); the fit needs "
                                f"at least one frame after the initial shape")
+    if settings.time_window is not None:
+        lo, hi = (float(v) for v in settings.time_window)
+        used = used[(times[used] >= lo) & (times[used] <= hi)]
+        if len(used) == 0:
+            raise CalibrationError(f"time_window: no frame after the start (t0 = {t0} s) lies in [{lo}, {hi}] s; "
+                                   f"the data's frames are at {np.round(times, 4).tolist()} s")
     # Resampling needs free slots: the Simulator grows state0 to resample.capacity_factor times its
     # sampled count (inactive slots are neither simulated nor rendered).
     resample = settings.resample_for(d, ppc)
@@ -1301,6 +1318,17 @@ def parse_duration(text: str | None) -> float | None:
     return seconds
 
 
+def parse_window(text: str | None) -> tuple | None:
+    """The --time-window option: 'T_LO:T_HI' in s -> (T_LO, T_HI) (None when absent)."""
+    if text is None:
+        return None
+    try:
+        lo, hi = (float(v) for v in str(text).split(":"))
+    except ValueError:
+        raise CalibrationError(f"--time-window: expected T_LO:T_HI in s, e.g. 0:0.8, got {text!r}") from None
+    return (lo, hi)
+
+
 def parse_bounds(text: str | None) -> dict:
     """'mu=50:400,m=0.3:1' -> {'mu': (50.0, 400.0), 'm': (0.3, 1.0)}."""
     if not text:
@@ -1359,6 +1387,8 @@ def add_fit_parser(subparsers) -> argparse.ArgumentParser:
     ap.add_argument("--max-iter", type=int, default=None,
                     help="iterations per start (default " + ", ".join(f"{k} {v}" for k, v in DEFAULT_MAX_ITER.items())
                     + ")")
+    ap.add_argument("--time-window", default=None, metavar="T_LO:T_HI",
+                    help="fit only the frames with times in [T_LO, T_HI] s, e.g. 0:0.8 (default: all)")
     ap.add_argument("--time-budget", default=None, metavar="DURATION",
                     help="wall-time budget of the optimization, all starts together: 900 (s), 15m or 1.5h "
                          "(default: none). The best point found is reported when it runs out; --resume continues")
@@ -1388,7 +1418,8 @@ def settings_from_args(args) -> FitSettings:
     """The validated `FitSettings` of parsed `fit` arguments."""
     return FitSettings(dx=args.dx, ppc=args.ppc, optimizer=args.optimizer, fixed=parse_fixed(args.fix),
                        bounds=parse_bounds(args.bounds), starts=args.starts, max_iter=args.max_iter,
-                       time_budget=parse_duration(getattr(args, "time_budget", None)), seed=args.seed,
+                       time_budget=parse_duration(getattr(args, "time_budget", None)),
+                       time_window=parse_window(getattr(args, "time_window", None)), seed=args.seed,
                        pixel_level=args.pixel_level, dtype=args.dtype,
                        dx_check=not args.no_dx_check,
                        resample=parse_feature(getattr(args, "resample", None), ResampleConfig, "resample"),

@@ -350,3 +350,28 @@ def test_a_stopped_fit_says_how_to_resume(slump, tmp_path, capsys, monkeypatch):
     assert signal.getsignal(signal.SIGTERM) == before
     monkeypatch.undo()
     resume_matches_reference(path, log, tmp_path, ref)
+
+
+def test_time_window_fits_only_its_frames_and_stops_the_rollouts_there(slump):
+    """FitSettings.time_window = (0, 0.13) s on the slump data (frames at 0, 0.06, ..., 0.3 s; the first
+    is the initial shape): the problem uses frames 1 and 2 only, its rollouts end at 0.12 s, and its
+    residual has two frames' pixels; a window holding no frame, or a bad one, is refused naming
+    time_window; the CLI option parses T_LO:T_HI."""
+    from jaxfoam.calibrate import build_problem, parse_window
+
+    path, _, _ = slump
+    data = read_silhouettes(path)
+    full = build_problem(data, SETTINGS)
+    part = build_problem(data, dataclasses.replace(SETTINGS, time_window=(0.0, 0.13)))
+    assert list(full.frames) == [1, 2, 3, 4, 5] and list(part.frames) == [1, 2]
+    assert part.sim.plan.frame_times[-1] == pytest.approx(0.12) and full.sim.plan.frame_times[-1] == pytest.approx(0.3)
+    z = part.transform.to_unconstrained({"sigma_y": 25.0})
+    H, W = part.cfg.shape
+    assert part.pixel_images(part.residual(z)).shape == (2, H, W)
+    with pytest.raises(CalibrationError, match="time_window: no frame"):
+        build_problem(data, dataclasses.replace(SETTINGS, time_window=(0.31, 0.5)))
+    with pytest.raises(CalibrationError, match="time_window needs finite 0 <= t_lo < t_hi"):
+        FitSettings(time_window=(0.5, 0.2)).validate()
+    assert parse_window("0:0.8") == (0.0, 0.8)
+    with pytest.raises(CalibrationError, match="--time-window"):
+        parse_window("0.8")
