@@ -375,3 +375,26 @@ def test_time_window_fits_only_its_frames_and_stops_the_rollouts_there(slump):
     assert parse_window("0:0.8") == (0.0, 0.8)
     with pytest.raises(CalibrationError, match="--time-window"):
         parse_window("0.8")
+
+
+def test_uneven_frames_note_names_the_frames_the_grid_resolves_worst(slump):
+    """The discretization check's per-frame residual change between dx and dx / sqrt 2 (fit.json
+    settings.dx_check.frame_change) becomes a note when some frames change more than
+    UNEVEN_FRAME_RATIO x the median frame: with the changes measured on the recovery study's squeeze
+    (set 0, 1 cm) the note names the lift's frames and suggests a window ending before them; with the
+    hanging plate's set 0 (mu recovered within 1%) there is no note; scattered frames get no window."""
+    from jaxfoam.calibrate import uneven_frames_note
+
+    t = [0.13, 0.25, 0.38, 0.51, 0.64, 0.76, 0.89, 1.02, 1.15, 1.27]
+    squeeze = [0.0064, 0.0082, 0.0107, 0.0083, 0.0092, 0.0094, 0.0191, 0.0182, 0.0161, 0.0169]
+    note = uneven_frames_note(t, squeeze, 0.01)
+    assert "t = 0.89, 1.02, 1.15, 1.27 s" in note and "1.6-1.9x" in note and "--time-window 0:0.76" in note
+    plate = [0.0061, 0.0083, 0.0093, 0.0081, 0.0080, 0.0077, 0.0071, 0.0075, 0.0089, 0.0079]
+    assert uneven_frames_note(t, plate, 0.01) is None
+    scattered = list(plate)
+    scattered[2] = 0.02
+    note = uneven_frames_note(t, scattered, 0.01)
+    assert "t = 0.38 s" in note and "--time-window" not in note
+    _, _, fit = slump
+    change = fit["settings"]["dx_check"]["frame_change"]
+    assert len(change) == len(fit["data"]["frames_used"]) and all(c > 0 for c in change)
