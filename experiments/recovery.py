@@ -19,10 +19,11 @@ wall time). The full study also refits the drop at dx_fit / sqrt(2) against data
 (FINE), to see whether a finer fit grid brings the parameters closer to the truth, and the drop on a
 frictionless floor (SLIP), to see how much of the drop's bias the floor's friction causes, the drop with
 particle floor contact (CONTACT), to see how much of it the grid-contact gap under the landed foam causes,
-and fits the 2D scenes on the fitter's default grid (DEFAULT_GRID, 64 cells across, data at half its
-spacing), what a user who keeps the default gets. Goals (issue 4): mu and sigma_y within 10%, m within 0.1, eta within 25% (or reported
-not identifiable with an interval containing the truth); truth inside the interval in >= 90% of cases;
-a 2D fit under 15 minutes on 2 CPU cores.
+the squeeze's data fitted over the squeeze and the hold only (WINDOW), to see how much of its bias the
+lift causes, and fits the 2D scenes on the fitter's default grid (DEFAULT_GRID, 64 cells across, data at
+half its spacing), what a user who keeps the default gets. Goals (issue 4): mu and sigma_y within 10%,
+m within 0.1, eta within 25% (or reported not identifiable with an interval containing the truth);
+truth inside the interval in >= 90% of cases; a 2D fit under 15 minutes on 2 CPU cores.
 
 Every case is saved as it finishes (its record in experiments/results/recovery_cases/<case>.json,
 committed; its data and fit log in out/recovery/; a killed study resumes where it stopped), and the

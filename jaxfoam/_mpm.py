@@ -549,7 +549,8 @@ def particle_floor(x, v, vol0, scene: Scene, dt):
     A particle's half-extent is r = vol0^(1/d) / 2 m (half its sampling spacing: the extent the
     silhouette renderer gives it). It may not end the substep with its extent below the floor: with
     gap = y - r - floor_y (m), a downward v_y < -max(gap, 0) / dt is raised to that, so it lands on
-    the floor (a particle that already overlaps it, as a jittered initial sample may, goes no deeper). The normal velocity so removed, dv (m/s), is Coulomb's impulse per unit mass: the tangential
+    the floor (a particle that already overlaps it, as a jittered initial sample may, goes no deeper).
+    The normal velocity so removed, dv (m/s), is Coulomb's impulse per unit mass: the tangential
     speed drops by friction * dv (not below 0). On a sticky floor such a particle, and one touching the
     floor (gap <= FLOOR_TOUCH r), loses its tangential velocity and cannot lift off.
     x (N, d) m, v (N, d) m/s, vol0 (N,) m^d (m^2 in 2D), dt s.

@@ -1354,7 +1354,8 @@ def parse_duration(text: str | None) -> float | None:
     try:
         seconds = float(number) * _DURATION_UNITS[unit]
     except (ValueError, KeyError):
-        raise CalibrationError(f"--time-budget: expected a duration such as 900, 900s, 15m or 1.5h, got {text!r}") from None
+        raise CalibrationError(f"--time-budget: expected a duration such as 900, 900s, 15m or 1.5h, "
+                               f"got {text!r}") from None
     if not (math.isfinite(seconds) and seconds > 0):
         raise CalibrationError(f"--time-budget: must be a positive duration, got {text!r}")
     return seconds
