@@ -13,7 +13,9 @@ what differs between the two grids once the foam has landed:
 - the same with a frictionless floor (friction 0), to separate the floor's friction from the rest;
 - the same floor with particle contact (`"floor": {"contact": "particle"}`: the floor holds a particle
   once its extent touches it, not as soon as its stencil reaches the floor's node row), to separate
-  the grid-contact gap from the rest.
+  the grid-contact gap from the rest;
+- (full run) for set 0 on the rough floor, each contact's runs against a finer run (dx 1.25 mm) of
+  either contact: which contact is closer, on the fit's grids, to where both converge.
 
 Usage: python -m experiments floor_contact [--quick]   (quick: set 0 only, friction 0.5 only, both contacts)
 Writes experiments/results/floor_contact[_quick].md. SI units; lengths in the table in mm.
@@ -37,6 +39,7 @@ DXS = (0.01, 0.005, 0.0025)  # m: the study's fit grid, its data grid, and a fin
 # Floors: (Coulomb coefficient, contact model): the scene's floor, a frictionless one, the scene's with
 # particle contact.
 FLOORS = ((0.5, "grid"), (0.0, "grid"), (0.5, "particle"))
+DX_FINE = 0.00125  # m: the finer reference of the cross-contact comparison (full run, set 0 only)
 PIXEL = 0.001  # m, raster pixel of the silhouette comparison
 DISK = 0.75  # particle spacings (dx / 2 at 4 particles per cell): disk radius of the raster
 
@@ -70,9 +73,12 @@ def main(argv=None):
     floors = [f for f in FLOORS if f[0] == 0.5] if args.quick else FLOORS
     truths = truth_sets()
     rows, dist_rows = [], []
+    kept = {}  # set 0, rough floor: the runs of each contact, for the cross-contact comparison
     for k in sets:
         for fr, contact in floors:
             runs = [run(truths[k], fr, contact, dx) for dx in DXS]
+            if k == 0 and fr == FLOORS[0][0]:
+                kept.update({(contact, r["dx"]): r for r in runs})
             ref = runs[-1]
             for r in runs:
                 # the fitter's goodness-of-fit measure, with the finest run as the observation
@@ -93,7 +99,31 @@ def main(argv=None):
             + C.md_table(header, rows)
             + f"\nMean distance between each run's silhouette and the {DXS[-1] * 1e3:g} mm run's of the same set, "
               "friction and contact, per frame, mm:\n\n" + C.md_table(dheader, dist_rows) + "\n" + verdict(rows, dist_rows) + "\n")
+    if not args.quick:
+        body += cross_contact(truths[0], kept)
     C.write_md("floor_contact", args.quick, "Floor contact of the drop across grid spacings", body)
+
+
+def cross_contact(truth: dict, kept: dict) -> str:
+    """Set 0 on the rough floor: every run of both contacts against a dx = DX_FINE run of each, mean
+    boundary distance over the frames, mm (the measure of the tables above)."""
+    fr = FLOORS[0][0]
+    for contact in ("grid", "particle"):
+        kept[(contact, DX_FINE)] = run(truth, fr, contact, DX_FINE)
+        print(f"set 0 friction {fr} {contact} contact at dx {DX_FINE}: done", flush=True)
+
+    def dist(a, b):
+        ra, rb = np.stack(kept[a]["rasters"]).astype(float), np.stack(kept[b]["rasters"]).astype(float)
+        return float(np.mean(silhouette_mismatch(ra, rb, np.ones_like(rb), PIXEL)[1])) * 1e3
+
+    refs = [("grid", DX_FINE), ("particle", DX_FINE)]
+    rows = [[contact, dx * 1e3] + [("" if (contact, dx) == ref else dist((contact, dx), ref)) for ref in refs]
+            for contact in ("grid", "particle") for dx in DXS + (DX_FINE,)]
+    return (f"\nBoth contacts against a finer run of each (set 0, friction {fr:g}, dx {DX_FINE * 1e3:g} mm): mean "
+            "distance between the silhouettes over the frames, mm. As dx shrinks both contacts converge to the "
+            "same motion (the gap under grid contact shrinks with dx); the question is which is closer on the "
+            "fit's grids.\n\n"
+            + C.md_table(["contact", "dx (mm)"] + [f"to {c} contact at {dx * 1e3:g} mm" for c, dx in refs], rows))
 
 
 def verdict(rows, dist_rows) -> str:
