@@ -237,10 +237,10 @@ not a coarse grid that fits the data with wrong parameters: the squeeze fits rep
   The hanging plate's set 0, whose mu came out +1%, stays within 0.11-0.34 spacings in every frame.
   The squeeze stays within 0.25-0.41 while it is squeezed and held (to 0.76 s), and reaches 0.5-1.5 once
   the plate lifts the foam stuck to it. The drop is at 0.34-0.44 before it lands and at 0.54-1.28
-  after (from 0.11 s), as the foam spreads over the rough floor. The hanging plate's set 1 stays within 0.11-0.65 until 0.65 s and is at
-  1.49-1.53 at 0.73-0.80 s, and its set 2 (the weak foam that tears off) reaches 2.2-6.4. The fits
-  move the parameters to match those phases: stretching, tearing and the sheared layer on a rough
-  floor, which the fit grid resolves worst.
+  after (from 0.11 s), as the foam spreads over the rough floor. The hanging plate's set 1 stays
+  within 0.11-0.65 until 0.65 s and is at 1.49-1.53 at 0.73-0.80 s, and its set 2 (the weak foam that
+  tears off) reaches 2.2-6.4. The fits move the parameters to match those phases: stretching, tearing
+  and the sheared layer on a rough floor, which the fit grid resolves worst.
 - Fitting the squeeze without its lift removes the grid's bias from the fit, but does not make sigma_y
   identifiable (section "Time window"). The fit covers t <= 0.8 s, the end of the hold in the scene's
   plate motion, a window not chosen from the truth.
@@ -371,6 +371,14 @@ def shear_rates(c: SceneCase, k: int, quick: bool) -> dict:
     return out
 
 
+def _fit_problem(c: SceneCase, k: int, quick: bool):
+    """(data, the fit's `CalibrationProblem`) of a case: its grid, time window and seed, LM settings."""
+    from jaxfoam.calibrate import build_problem
+
+    data = read_silhouettes(data_path(c, k, quick))
+    return data, build_problem(data, FitSettings(dx=c.dx_fit, optimizer="lm", seed=0, time_window=c.window))
+
+
 def truth_loss(c: SceneCase, k: int, quick: bool) -> float:
     """The fit's loss 0.5 |r|^2 at the true parameters (one rollout at dx_fit): below the fitted loss, the
     optimizer stopped short of the truth's basin; above it, the fit grid's bias (or the data's
@@ -380,8 +388,7 @@ def truth_loss(c: SceneCase, k: int, quick: bool) -> float:
         return float(json.loads(path.read_text())["loss"])
     from jaxfoam.calibrate import build_problem
 
-    data = read_silhouettes(data_path(c, k, quick))
-    problem = build_problem(data, FitSettings(dx=c.dx_fit, optimizer="lm", seed=0, time_window=c.window))
+    data, problem = _fit_problem(c, k, quick)
     theta = np.array([data.truth[n] for n in problem.transform.names])
     loss = problem.loss(problem.transform.to_unconstrained(theta))
     CASES.mkdir(parents=True, exist_ok=True)
@@ -397,11 +404,10 @@ def truth_frames(c: SceneCase, k: int, quick: bool) -> dict:
     path = CASES / f"{case_id(c, k, quick)}_truthframes.json"
     if path.exists():
         return json.loads(path.read_text())
-    from jaxfoam.calibrate import FIT_PPC, build_problem, silhouette_mismatch
+    from jaxfoam.calibrate import FIT_PPC, silhouette_mismatch
     from jaxfoam.silhouette import particle_spacing
 
-    data = read_silhouettes(data_path(c, k, quick))
-    problem = build_problem(data, FitSettings(dx=c.dx_fit, optimizer="lm", seed=0, time_window=c.window))
+    data, problem = _fit_problem(c, k, quick)
     occ = problem.render({n: data.truth[n] for n in problem.transform.names})
     _, boundary = silhouette_mismatch(occ, problem.masks, problem.weights, problem.cfg.pixel_size)
     s = particle_spacing(problem.dx, FIT_PPC[problem.scene.dim], problem.scene.dim)
@@ -611,19 +617,22 @@ def _probe_table(probe: list[dict], lm: list[dict], names, base_scene) -> str:
                       + ["loss", "loss at truth", "min IoU; max boundary (spacings)", "wall min"], rows)
 
 
+def _tally(recs: list[dict], names) -> tuple[int, int, int, dict]:
+    """(parameter-cases, truth inside the interval, goal met, name -> within the error goal) of fits."""
+    inside = sum(r["evaluation"][p]["inside"] for r in recs for p in names)
+    goals = sum(r["evaluation"][p]["goal_met"] for r in recs for p in names)
+    within = {p: sum(r["evaluation"][p]["within_goal"] for r in recs) for p in names}
+    return len(names) * len(recs), inside, goals, within
+
+
 def _default_grid_section(dflt: list[dict], lm: list[dict], names) -> str:
     """The DEFAULT_GRID probe: its fits beside the study's 1 cm fits of the same sets, and its coverage and
     goal counts (the same measures as the main table's summary)."""
-    n = len(names) * len(dflt)
-    inside = sum(r["evaluation"][p]["inside"] for r in dflt for p in names)
-    goals = sum(r["evaluation"][p]["goal_met"] for r in dflt for p in names)
-    within = {p: sum(r["evaluation"][p]["within_goal"] for r in dflt) for p in names}
+    n, inside, goals, within = _tally(dflt, names)
     walls = [r["fit"]["wall_time"] / 60 for r in dflt]
     same = [b for b in lm if any(b["scene"] == r["scene"] and b["set"] == r["set"] for r in dflt)]
     lm3d = [b for b in lm if b["scene"].endswith("3d")]
-    n3d = len(names) * len(lm3d)
-    in3d = sum(b["evaluation"][p]["inside"] for b in lm3d for p in names)
-    g3d = sum(b["evaluation"][p]["goal_met"] for b in lm3d for p in names)
+    n3d, in3d, g3d, _ = _tally(lm3d, names)
     from jaxfoam.calibrate import FIT_CELLS
 
     grid = [r["dx_fit"] * 1e3 for r in dflt]
@@ -803,12 +812,10 @@ def report(quick: bool, n_sets: int | None = None) -> None:
         body.append(_probe_table(win, lm + dflt, names, base_scene=lambda r: r["scene"]))
         for dx in sorted({r["dx_fit"] for r in win}, reverse=True):
             rs = [r for r in win if r["dx_fit"] == dx]
-            n = len(names) * len(rs)
+            n, inside_w, goals_w, within_w = _tally(rs, names)
             body.append(f"\nIn the window at dx {dx * 1e3:.2f} mm: truth inside the combined interval in "
-                        f"{sum(r['evaluation'][p]['inside'] for r in rs for p in names)}/{n} parameter-cases, goal "
-                        f"met in {sum(r['evaluation'][p]['goal_met'] for r in rs for p in names)}/{n}; within the "
-                        "error goal: " + ", ".join(f"{p} {sum(r['evaluation'][p]['within_goal'] for r in rs)}/{len(rs)}"
-                                                   for p in names)
+                        f"{inside_w}/{n} parameter-cases, goal met in {goals_w}/{n}; within the error goal: "
+                        + ", ".join(f"{p} {within_w[p]}/{len(rs)}" for p in names)
                         + f"; wall time {min(r['fit']['wall_time'] for r in rs) / 60:.1f}-"
                           f"{max(r['fit']['wall_time'] for r in rs) / 60:.1f} min per fit.\n")
     if dflt:

@@ -89,6 +89,13 @@ def value_and_jacfwd(residual: Callable) -> Callable:
     return both
 
 
+def check_max_time(value):
+    """Raise ValueError unless a wall-time budget is None or a finite number of seconds >= 0."""
+    if value is not None and not (isinstance(value, (int, float, np.floating, np.integer)) and
+                                  math.isfinite(value) and value >= 0):
+        raise ValueError(f"max_time must be None or a finite number of seconds >= 0, got {value!r}")
+
+
 def _check_tol(name, value):
     if value is not None and (not math.isfinite(value) or value < 0):
         raise ValueError(f"{name} must be None or a finite number >= 0, got {value!r}")
@@ -185,9 +192,7 @@ def _iterate(kind, evaluate, x0, optimizer, *, max_iterations=100, max_evaluatio
         raise ValueError(f"max_evaluations must be None or >= 1, got {max_evaluations!r}")
     for name, value in (("ftol", ftol), ("xtol", xtol), ("gtol", gtol)):
         _check_tol(name, value)
-    if max_time is not None and not (isinstance(max_time, (int, float, np.floating, np.integer)) and
-                                     math.isfinite(max_time) and max_time >= 0):
-        raise ValueError(f"max_time must be None or a finite number of seconds >= 0, got {max_time!r}")
+    check_max_time(max_time)
     meta = {"kind": kind, "optimizer": optimizer.config(), "ftol": ftol, "xtol": xtol, "gtol": gtol,
             "max_iterations": int(max_iterations), "max_evaluations": max_evaluations, "n_params": x0.shape[0]}
 

@@ -7,6 +7,7 @@ from typing import Callable, Mapping
 
 import numpy as np
 
+from ._driver import check_max_time
 from ._solution import Solution
 from .fitlog import FitLog, FitLogError
 from .transforms import ParameterTransform
@@ -102,11 +103,11 @@ def multistart(solve: Callable[..., Solution], starts, *, log=None, resume: bool
       seed: the seed that produced the starts (recorded).  unit: their unit-cube design (recorded).
       max_time: wall-time budget of all starts together, s (None: unlimited). Each start gets what is
         left of it as the driver's `max_time` keyword (so `solve` must accept it); the first start
-        always evaluates its starting point, a later start the budget leaves no time for is not evaluated (`Reason.MAX_TIME`, loss inf, empty history). With `resume`,
-        runs stopped by the budget continue and unstarted ones start, under the new budget.
+        always evaluates its starting point, a later start the budget leaves no time for is not
+        evaluated (`Reason.MAX_TIME`, loss inf, empty history). With `resume`, runs stopped by the
+        budget continue and unstarted ones start, under the new budget.
     """
-    if max_time is not None and not (np.isfinite(max_time) and max_time >= 0):
-        raise ValueError(f"max_time must be None or a finite number of seconds >= 0, got {max_time!r}")
+    check_max_time(max_time)
     deadline = None if max_time is None else time.perf_counter() + float(max_time)
     starts = np.asarray(starts, np.float64)
     if starts.ndim != 2 or starts.shape[0] < 1:

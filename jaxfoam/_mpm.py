@@ -543,6 +543,12 @@ def _floor_rule(v, scene: Scene):
 FLOOR_TOUCH = 1e-6
 
 
+def _half_extent(vol0, d):
+    """A particle's half-extent vol0^(1/d) / 2, m (0 for an empty slot, with a finite derivative)."""
+    has = vol0 > 0
+    return jnp.where(has, 0.5 * jnp.power(jnp.where(has, vol0, 1.0), 1.0 / d), 0.0)
+
+
 def particle_floor(x, v, vol0, scene: Scene, dt):
     """Floor contact on particles (scene.floor_contact == "particle"): velocities (N, d) m/s.
 
@@ -556,8 +562,7 @@ def particle_floor(x, v, vol0, scene: Scene, dt):
     x (N, d) m, v (N, d) m/s, vol0 (N,) m^d (m^2 in 2D), dt s.
     """
     d = x.shape[1]
-    has = vol0 > 0
-    r = jnp.where(has, 0.5 * jnp.power(jnp.where(has, vol0, 1.0), 1.0 / d), 0.0)
+    r = _half_extent(vol0, d)
     gap = x[:, 1] - r - scene.floor_y
     # A particle already overlapping the floor (a jittered initial sample) is not pushed out, only
     # kept from going deeper: pushing it out within one substep would launch it.
@@ -581,16 +586,18 @@ def particle_floor(x, v, vol0, scene: Scene, dt):
     return jnp.stack([cols[k] for k in range(d)], axis=1)
 
 
-def floor_touch(x, vol0, active, grid: Grid, scene: Scene, idx0=None) -> jax.Array:
+def floor_touch(x, vol0, active, grid: Grid, scene: Scene, idx0=None) -> jax.Array | None:
     """(G,) bool, for particle floor contact: the nodes whose stencil support holds a particle whose
     extent (half-size vol0^(1/d) / 2, m) reaches the floor (to FLOOR_TOUCH dx). Only those of the
     nodes at or below the floor take the floor's rule, so the grid holds material that touches the
     floor, not material that merely comes within a stencil's reach of it (a decision on values, not
-    differentiated). x (N, d) m, vol0 (N,) m^d, active (N,) bool; idx0 the stencil base index."""
+    differentiated). x (N, d) m, vol0 (N,) m^d, active (N,) bool; idx0 the stencil base index.
+    None when the scene has no floor with particle contact (`Scene.particle_contact_floor`)."""
+    if not scene.particle_contact_floor:
+        return None
     d = x.shape[1]
     has = active & (vol0 > 0)
-    r = jnp.where(has, 0.5 * jnp.power(jnp.where(has, vol0, 1.0), 1.0 / d), 0.0)
-    low = jax.lax.stop_gradient(jnp.where(has, x[:, 1] - r, jnp.inf))
+    low = jax.lax.stop_gradient(jnp.where(has, x[:, 1] - _half_extent(vol0, d), jnp.inf))
     if idx0 is None:
         idx0 = _flat_index(_stencil(x, grid)[0], (0,) * d, grid)
     idx0 = jax.lax.stop_gradient(idx0)
@@ -651,7 +658,7 @@ def apply_colliders(v, node_x, scene: Scene, t, colliders=(), grid_m=None, dt=No
             v = jnp.where(inside[:, None], vp[None, :] + vrel, v)
     wall_lo = np.asarray(scene.domain_min, np.float64).copy()
     if scene.floor_y is not None:
-        particle = scene.floor_contact == "particle"
+        particle = scene.particle_contact_floor
         if particle:
             if touch is None:
                 raise ValueError("a floor with particle contact needs `touch` (jaxfoam._mpm.floor_touch)")
@@ -802,7 +809,7 @@ def constitutive(state: State, v, C, params: Params, grid: Grid, dt, scene: Scen
 def _constitutive(state: State, v, Cc, params: Params, grid: Grid, dt, scene: Scene | None = None) -> State:
     """`constitutive` on the component form (`to_components`), C given as components."""
     d = state.dim
-    if scene is not None and scene.floor_y is not None and scene.floor_contact == "particle":
+    if scene is not None and scene.particle_contact_floor:
         v = particle_floor(state.x, v, state.vol0, scene, dt)
     like = state.x[:, 0]
     fc = T.add_diag(T.scale(Cc, dt), 1.0)
@@ -857,9 +864,7 @@ def _substep(state: State, params: Params, scene: Scene, grid: Grid, dt, fractur
     idx0 = hoist(_flat_index(_stencil(state.x, grid)[0], (0,) * state.dim, grid), state.t)
     with jax.named_scope("p2g"):
         grid_mv, grid_m = p2g(state, params, grid, dt, idx0, hand_adjoint)
-    touch = None
-    if scene.floor_y is not None and scene.floor_contact == "particle":
-        touch = floor_touch(state.x, state.vol0, state.active, grid, scene, idx0)
+    touch = floor_touch(state.x, state.vol0, state.active, grid, scene, idx0)
     with jax.named_scope("grid_update"):
         grid_v = grid_update(grid_mv, grid_m, scene, grid, state.t, dt, colliders, touch)
     with jax.named_scope("g2p"):

@@ -121,6 +121,11 @@ class Scene:
     def initial_shape(self) -> dict:
         return self.spec["initial_shape"]
 
+    @property
+    def particle_contact_floor(self) -> bool:
+        """Whether the scene has a floor with particle contact (`jaxfoam._mpm.particle_floor`)."""
+        return self.floor_y is not None and self.floor_contact == "particle"
+
     def max_plate_speed(self) -> float:
         """An upper bound of the plates' speed, m/s (for the time-step estimate)."""
         vmax = 0.0

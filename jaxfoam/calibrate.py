@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures
+import contextlib
 import dataclasses
 import functools
 import hashlib
@@ -1062,9 +1063,8 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
 
     # The lowest loss of any iterate of any start: Adam accepts every finite step, so its last
     # iterate need not be its best one (LM and L-BFGS only accept decreases).
+    # (A start the time budget left unrun has no iterate; the first start always has one.)
     lows = [float(np.min(s.history.loss)) if len(s.history.loss) else math.inf for s in ms.solutions]
-    if not any(len(s.history.loss) for s in ms.solutions):
-        raise CalibrationError("no start was evaluated (time budget spent before the first): nothing to report")
     best_index = int(np.argmin(lows))
     best = ms.solutions[best_index]
     k_best = int(np.argmin(best.history.loss))
@@ -1474,23 +1474,22 @@ class _Terminated(KeyboardInterrupt):
     """SIGTERM (a job scheduler's or `timeout`'s stop) delivered to a running fit."""
 
 
-class _terminate_as_interrupt:
+@contextlib.contextmanager
+def _terminate_as_interrupt():
     """Within the block, SIGTERM raises `_Terminated` like Ctrl-C raises KeyboardInterrupt, so a stopped
     fit ends with a message on how to resume instead of silently (main thread only; a no-op elsewhere)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
 
-    def __enter__(self):
-        self.previous = None
-        if threading.current_thread() is threading.main_thread():
-            def stop(signum, frame):
-                raise _Terminated
+    def stop(signum, frame):
+        raise _Terminated
 
-            self.previous = signal.signal(signal.SIGTERM, stop)
-        return self
-
-    def __exit__(self, *exc):
-        if self.previous is not None:
-            signal.signal(signal.SIGTERM, self.previous)
-        return False
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def run_fit(args) -> int:

@@ -280,9 +280,7 @@ def collider_force(state: State, params: Params, scene: Scene, grid: Grid, dt, r
     v = safe_div(grid_mv, grid_m[:, None])
     v = v + jnp.where(grid_m[:, None] > 0, dt * scene.gravity.astype(v.dtype)[None, :], 0.0)
     node_x = grid.node_positions(v.dtype)
-    touch = None
-    if scene.floor_y is not None and scene.floor_contact == "particle":
-        touch = floor_touch(state.x, state.vol0, state.active, grid, scene)
+    touch = floor_touch(state.x, state.vol0, state.active, grid, scene)
     after = apply_colliders(v, node_x, scene, state.t + dt, colliders, grid_m, dt, grid.dx, grid=grid, touch=touch)
     dp = grid_m[:, None] * (after - v) / dt
     if region is not None:
