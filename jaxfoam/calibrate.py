@@ -158,6 +158,10 @@ class FitSettings:
       bounds: name -> (lo, hi) replacing DEFAULT_BOUNDS for that parameter.
       start_ranges: name -> (lo, hi) replacing DEFAULT_START_RANGES (clipped to the bounds).
       starts: number of multi-start initial guesses (>= 1).
+      initial: name -> value (physical units): the first start's guess for those fitted parameters, e.g. the
+        result of a fit on a coarser grid (coarse-to-fine, `coarse_dx`); the others start at the centre of
+        their start ranges, and starts after the first are the Latin-hypercube points as usual. None: the
+        centre of the start ranges. Each value must lie strictly inside its bounds.
       max_iter: accepted iterations per start (None: DEFAULT_MAX_ITER of the optimizer).
       time_window: (t_lo, t_hi), s: fit only the frames whose times lie in it (None: every frame after the
         start); the rollouts then stop at the last of them. For data whose late phase the model (or a
@@ -198,6 +202,7 @@ class FitSettings:
     bounds: Mapping = dataclasses.field(default_factory=dict)
     start_ranges: Mapping = dataclasses.field(default_factory=dict)
     starts: int = DEFAULT_STARTS
+    initial: Mapping | None = None
     max_iter: int | None = None
     time_budget: float | None = None
     time_window: tuple | None = None
@@ -238,6 +243,18 @@ class FitSettings:
                     raise CalibrationError(f"{label}: {name} needs finite 0 < lo < hi, got {lo}:{hi}")
         if not int(self.starts) >= 1:
             raise CalibrationError(f"starts must be >= 1, got {self.starts!r}")
+        for name, value in (self.initial or {}).items():
+            if name not in FIT_FIELDS:
+                raise CalibrationError(f"initial: unknown parameter {name!r}; expected one of {FIT_FIELDS}")
+            if name in self.fixed:
+                raise CalibrationError(f"initial: {name} is fixed (fixed={dict(self.fixed)}); give it one or the other")
+            lo, hi = self.bounds_of(name)
+            try:
+                v = float(value)
+            except (TypeError, ValueError):
+                raise CalibrationError(f"initial: {name} must be a number, got {value!r}") from None
+            if not (math.isfinite(v) and lo < v < hi):
+                raise CalibrationError(f"initial: {name} = {value!r} must lie strictly inside its bounds ({lo:g}, {hi:g})")
         if self.max_iter is not None and int(self.max_iter) < 0:
             raise CalibrationError(f"max_iter must be >= 0, got {self.max_iter!r}")
         if self.time_budget is not None and not (isinstance(self.time_budget, (int, float)) and
@@ -317,6 +334,7 @@ class FitSettings:
         d["bounds"] = {n: list(self.bounds_of(n)) for n in FIT_FIELDS}
         d["start_ranges"] = {n: list(self.start_range_of(n)) for n in FIT_FIELDS}
         d["max_iter"] = self.iterations
+        d["initial"] = None if self.initial is None else {k: float(v) for k, v in self.initial.items()}
         # The feature configs as dicts of their fields (None when off).
         d["resample"] = None if self.resample is None else dataclasses.asdict(self.resample)
         d["fracture"] = None if self.fracture is None else dataclasses.asdict(self.fracture)
@@ -723,7 +741,7 @@ def build_problem(data: Silhouettes, settings: FitSettings | None = None) -> Cal
     rho = float(fixed.get("rho", scene.density))
     fitted = settings.fitted
     bounds = {n: settings.bounds_of(n) for n in fitted}
-    transform = fitting.ParameterTransform.create(fitted, positive=[n for n in fitted if n != "m"], bounds=bounds)
+    transform = fit_transform(settings)
 
     # The time step is that of the stiffest admissible material (mu at its upper bound, or fixed), so
     # every rollout of the fit is stable with one substep count.
@@ -938,13 +956,27 @@ def make_optimizer(name: str):
     raise CalibrationError(f"optimizer must be one of {OPTIMIZERS}, got {name!r}")
 
 
+def fit_transform(settings: FitSettings) -> fitting.ParameterTransform:
+    """The fitted coordinates of a fit: log for the positive parameters, bounded for all, within the
+    settings' bounds."""
+    fitted = settings.fitted
+    return fitting.ParameterTransform.create(fitted, positive=[n for n in fitted if n != "m"],
+                                             bounds={n: settings.bounds_of(n) for n in fitted})
+
+
 def make_starts(transform: fitting.ParameterTransform, settings: FitSettings):
     """Initial guesses (S, p) in fitted coordinates and their unit-cube design (S, p): the centre of the
-    starting ranges (log-centre for log parameters), then S - 1 seeded Latin-hypercube points."""
+    starting ranges (log-centre for log parameters), with `settings.initial`'s values in place of the
+    centre's, then S - 1 seeded Latin-hypercube points. The unit design of the first start is 0.5, and NaN
+    (not drawn from the design) for a parameter set by `initial`."""
     ranges = {n: settings.start_range_of(n) for n in transform.names}
-    centre = transform.from_unit(np.full((1, transform.size), 0.5), ranges)
-    z = [np.asarray(transform.to_unconstrained(centre[0]))]
-    unit = [np.full(transform.size, 0.5)]
+    first = np.array(transform.from_unit(np.full((1, transform.size), 0.5), ranges)[0], np.float64)
+    unit0 = np.full(transform.size, 0.5)
+    for i, n in enumerate(transform.names):
+        if settings.initial and n in settings.initial:
+            first[i], unit0[i] = float(settings.initial[n]), math.nan
+    z = [np.asarray(transform.to_unconstrained(first))]
+    unit = [unit0]
     if settings.starts > 1:
         zl, ul = fitting.lhs_starts(transform, settings.starts - 1, settings.seed, sample_bounds=ranges)
         z.extend(list(zl))
@@ -1372,6 +1404,35 @@ def parse_window(text: str | None) -> tuple | None:
     return (lo, hi)
 
 
+def parse_start(text: str | None, fixed: Mapping | None = None) -> dict | None:
+    """The first start's guess from `--start`: 'mu=150,sigma_y=30' -> {'mu': 150.0, 'sigma_y': 30.0}, or the
+    path of a fit.json whose fitted parameters are taken (those held fixed in this fit are left out), e.g.
+    a fit of the same data on a coarser grid. None when not given."""
+    if not text:
+        return None
+    path = Path(text)
+    if "=" not in text and path.suffix == ".json":
+        try:
+            params = json.loads(path.read_text())["params"]
+        except FileNotFoundError:
+            raise CalibrationError(f"--start: no such fit result {text!r}") from None
+        except (json.JSONDecodeError, KeyError, TypeError) as exc:
+            raise CalibrationError(f"--start: {text!r} is not a fit result (a fit.json with 'params'): {exc}") from None
+        out = {k: float(v) for k, v in params.items() if k in FIT_FIELDS and k not in (fixed or {})}
+        if not out:
+            raise CalibrationError(f"--start: {text!r} holds none of the fitted parameters {FIT_FIELDS}")
+        return out
+    out = {}
+    for k, v in _parse_assignments(text, "start").items():
+        if k not in FIT_FIELDS:
+            raise CalibrationError(f"--start: unknown parameter {k!r}; expected one of {FIT_FIELDS}")
+        try:
+            out[k] = float(v)
+        except ValueError as exc:
+            raise CalibrationError(f"--start: {k} must be a number, got {v!r}") from exc
+    return out
+
+
 def parse_bounds(text: str | None) -> dict:
     """'mu=50:400,m=0.3:1' -> {'mu': (50.0, 400.0), 'm': (0.3, 1.0)}."""
     if not text:
@@ -1427,6 +1488,9 @@ def add_fit_parser(subparsers) -> argparse.ArgumentParser:
     ap.add_argument("--bounds", default=None, help="bounds lo:hi, e.g. mu=20:1000,m=0.3:1.2 (defaults: "
                     + ", ".join(f"{k}={lo:g}:{hi:g}" for k, (lo, hi) in DEFAULT_BOUNDS.items()) + ")")
     ap.add_argument("--starts", type=int, default=DEFAULT_STARTS, help=f"multi-start guesses (default {DEFAULT_STARTS})")
+    ap.add_argument("--start", default=None, metavar="NAME=VALUE,...|FIT.json",
+                    help="the first start's guess, e.g. mu=150,sigma_y=30, or a fit.json to continue from (e.g. a "
+                         "fit of the same data on a coarser --dx); default: the centre of the start ranges")
     ap.add_argument("--max-iter", type=int, default=None,
                     help="iterations per start (default " + ", ".join(f"{k} {v}" for k, v in DEFAULT_MAX_ITER.items())
                     + ")")
@@ -1459,8 +1523,10 @@ def add_fit_parser(subparsers) -> argparse.ArgumentParser:
 
 def settings_from_args(args) -> FitSettings:
     """The validated `FitSettings` of parsed `fit` arguments."""
-    return FitSettings(dx=args.dx, ppc=args.ppc, optimizer=args.optimizer, fixed=parse_fixed(args.fix),
-                       bounds=parse_bounds(args.bounds), starts=args.starts, max_iter=args.max_iter,
+    fixed = parse_fixed(args.fix)
+    return FitSettings(dx=args.dx, ppc=args.ppc, optimizer=args.optimizer, fixed=fixed,
+                       bounds=parse_bounds(args.bounds), starts=args.starts,
+                       initial=parse_start(getattr(args, "start", None), fixed), max_iter=args.max_iter,
                        time_budget=parse_duration(getattr(args, "time_budget", None)),
                        time_window=parse_window(getattr(args, "time_window", None)), seed=args.seed,
                        pixel_level=args.pixel_level, dtype=args.dtype,

@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 
 from jaxfoam.calibrate import (FRAME_BOUNDARY_SPACINGS, CalibrationError, FitSettings, calibrate, choose_pixel_level,
-                               correlation_area, default_log_path, parse_bounds, parse_duration, parse_fixed,
-                               silhouette_mismatch)
+                               correlation_area, default_log_path, fit_transform, make_starts, parse_bounds,
+                               parse_duration, parse_fixed, parse_start, silhouette_mismatch)
 from jaxfoam.cli import main
 from jaxfoam.io import read_silhouettes
 from jaxfoam.synth import synthesize
@@ -179,6 +179,52 @@ def test_cli_option_parsing_and_settings_errors():
     s = FitSettings(fixed={"m": 0.5}, bounds={"mu": (100.0, 300.0)})
     assert s.fitted == ("mu", "sigma_y", "eta")
     assert s.start_range_of("mu") == (100.0, 300.0)  # the default range (30, 600) clipped to the bounds
+
+
+def test_first_start_from_given_values_or_a_fit_result(tmp_path):
+    """`initial` / --start replaces the first start's centre values by the given ones and leaves the
+    Latin-hypercube starts as they were; a fit.json gives its fitted parameters, minus this fit's fixed
+    ones; values outside the bounds, unknown or fixed names are refused naming the field."""
+    settings = FitSettings(fixed={"m": 0.5}, starts=3, seed=4)
+    tr = fit_transform(settings)
+    z_plain, u_plain = make_starts(tr, settings)
+    z_init, u_init = make_starts(tr, dataclasses.replace(settings, initial={"mu": 123.0, "eta": 7.5}))
+    theta = np.asarray(tr.to_physical(z_init[0]))
+    np.testing.assert_allclose(theta, [123.0, np.asarray(tr.to_physical(z_plain[0]))[1], 7.5], rtol=1e-12)
+    np.testing.assert_array_equal(z_init[1:], z_plain[1:])
+    assert np.isnan(u_init[0, 0]) and u_init[0, 1] == 0.5 and np.isnan(u_init[0, 2])
+
+    assert parse_start("mu=150, sigma_y=30") == {"mu": 150.0, "sigma_y": 30.0}
+    assert parse_start(None) is None
+    fit = tmp_path / "coarse.json"
+    fit.write_text(json.dumps({"params": {"mu": 140.0, "sigma_y": 22.0, "eta": 4.0, "m": 0.7, "kappa": 3000.0}}))
+    assert parse_start(str(fit), fixed={"m": 0.5}) == {"mu": 140.0, "sigma_y": 22.0, "eta": 4.0}
+    with pytest.raises(CalibrationError, match="--start: no such fit result"):
+        parse_start(str(tmp_path / "missing.json"))
+    with pytest.raises(CalibrationError, match="--start: unknown parameter 'nu'"):
+        parse_start("nu=3")
+    with pytest.raises(CalibrationError, match=r"initial: mu = 3000.0 must lie strictly inside its bounds \(5, 2000\)"):
+        FitSettings(initial={"mu": 3000.0}).validate()
+    with pytest.raises(CalibrationError, match="initial: m is fixed"):
+        FitSettings(fixed={"m": 0.5}, initial={"m": 0.6}).validate()
+    with pytest.raises(CalibrationError, match="initial: unknown parameter 'kappa'"):
+        FitSettings(initial={"kappa": 3000.0}).validate()
+
+
+def test_fit_continued_from_its_own_result_stays_there(slump, tmp_path):
+    """Coarse-to-fine contract: `jaxfoam fit --start FIT.json` starts at that fit's parameters, so a fit
+    started at its own optimum (same data and grid) reproduces it: sigma_y within 1e-3 relative, no higher
+    loss, and it stops within 3 iterations (the tolerances, not the budget)."""
+    path, out, ref = slump
+    again = tmp_path / "again.json"
+    assert main(["fit", str(path), "--out", str(again), "--start", str(out), "--no-plots", "--no-dx-check"]
+                + FIT_ARGS) == 0
+    fit = json.loads(again.read_text())
+    assert fit["runs"][0]["start"]["sigma_y"] == pytest.approx(ref["params"]["sigma_y"], rel=1e-12)
+    assert fit["settings"]["initial"] == {"sigma_y": ref["params"]["sigma_y"]}
+    assert fit["params"]["sigma_y"] == pytest.approx(ref["params"]["sigma_y"], rel=1e-3)
+    assert fit["loss"] <= ref["loss"] * (1 + 1e-9)
+    assert fit["iterations"] <= 3 and fit["reason"] != "max_iterations"
 
 
 def test_correlation_area_of_white_and_smoothed_noise():
