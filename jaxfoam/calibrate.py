@@ -1388,14 +1388,19 @@ def parse_fixed(text: str | None) -> dict:
     """'kappa=3000,m=0.5' -> {'kappa': 3000.0, 'm': 0.5} (names from FIT_FIELDS, kappa, rho/density)."""
     if not text:
         return {}
+    return _parse_numbers(text, "fix", FIT_FIELDS + KNOWN_INPUTS)
+
+
+def _parse_numbers(text: str, label: str, allowed) -> dict:
+    """'a=1,b=2' -> {'a': 1.0, 'b': 2.0} for names in `allowed`; errors name the option --label."""
     out = {}
-    for k, v in _parse_assignments(text, "fix").items():
-        if k not in FIT_FIELDS + KNOWN_INPUTS:
-            raise CalibrationError(f"--fix: unknown parameter {k!r}; expected one of {FIT_FIELDS + KNOWN_INPUTS}")
+    for k, v in _parse_assignments(text, label).items():
+        if k not in allowed:
+            raise CalibrationError(f"--{label}: unknown parameter {k!r}; expected one of {tuple(allowed)}")
         try:
             out[k] = float(v)
         except ValueError as exc:
-            raise CalibrationError(f"--fix: {k} must be a number, got {v!r}") from exc
+            raise CalibrationError(f"--{label}: {k} must be a number, got {v!r}") from exc
     return out
 
 
@@ -1448,15 +1453,7 @@ def parse_start(text: str | None, fixed: Mapping | None = None) -> dict | None:
         if not out:
             raise CalibrationError(f"--start: {text!r} holds none of the fitted parameters {FIT_FIELDS}")
         return out
-    out = {}
-    for k, v in _parse_assignments(text, "start").items():
-        if k not in FIT_FIELDS:
-            raise CalibrationError(f"--start: unknown parameter {k!r}; expected one of {FIT_FIELDS}")
-        try:
-            out[k] = float(v)
-        except ValueError as exc:
-            raise CalibrationError(f"--start: {k} must be a number, got {v!r}") from exc
-    return out
+    return _parse_numbers(text, "start", FIT_FIELDS)
 
 
 def parse_bounds(text: str | None) -> dict:
