@@ -65,6 +65,9 @@ def test_fit_recovers_yield_stress_from_finer_synthetic_data(slump):
     assert lo < slo < sy < shi < hi
     assert lo < TRUTH["sigma_y"] < hi
     assert fit["numerical_error"]["sigma_y"] > 0.5 * abs(sy - TRUTH["sigma_y"])
+    check = fit["settings"]["dx_check"]  # the two estimates of the move between grids; the larger is used
+    assert check["jacobian"] == "both"
+    assert check["shift_z"][0] == max(check["shift_z_fit_jacobian"][0], check["shift_z_own_jacobians"][0], key=abs)
     hist = np.asarray(fit["loss_history"])
     assert len(hist) == fit["iterations"] + 1 and np.all(np.diff(hist) <= 0)
     assert hist[-1] < 0.5 * hist[0]  # the start (27.4 Pa, the centre of the range) is clearly improved on
