@@ -207,8 +207,11 @@ def test_first_start_from_given_values_or_a_fit_result(tmp_path):
         parse_start(str(tmp_path / "missing.json"))
     with pytest.raises(CalibrationError, match="--start: unknown parameter 'nu'"):
         parse_start("nu=3")
-    with pytest.raises(CalibrationError, match=r"initial: mu = 3000.0 must lie strictly inside its bounds \(5, 2000\)"):
+    with pytest.raises(CalibrationError, match=r"initial: mu = 3000.0 must lie within its bounds \[5, 2000\]"):
         FitSettings(initial={"mu": 3000.0}).validate()
+    # a fit that ended on a bound (m = 1.5) can be continued: it starts just inside
+    z_edge, _ = make_starts(tr, dataclasses.replace(settings, initial={"mu": 2000.0}))
+    assert np.isfinite(z_edge[0]).all() and 1999.99 < float(np.asarray(tr.to_physical(z_edge[0]))[0]) < 2000.0
     with pytest.raises(CalibrationError, match="initial: m is fixed"):
         FitSettings(fixed={"m": 0.5}, initial={"m": 0.6}).validate()
     with pytest.raises(CalibrationError, match="initial: unknown parameter 'kappa'"):
