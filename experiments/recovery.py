@@ -408,8 +408,6 @@ def truth_loss(c: SceneCase, k: int, quick: bool) -> float:
     path = CASES / f"{case_id(c, k, quick)}_truthloss.json"
     if path.exists():
         return float(json.loads(path.read_text())["loss"])
-    from jaxfoam.calibrate import build_problem
-
     data, problem = _fit_problem(c, k, quick)
     theta = np.array([data.truth[n] for n in problem.transform.names])
     loss = problem.loss(problem.transform.to_unconstrained(theta))

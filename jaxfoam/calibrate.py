@@ -170,7 +170,7 @@ class FitSettings:
       start_ranges: name -> (lo, hi) replacing DEFAULT_START_RANGES (clipped to the bounds).
       starts: number of multi-start initial guesses (>= 1).
       initial: name -> value (physical units): the first start's guess for those fitted parameters, e.g. the
-        result of a fit on a coarser grid (coarse-to-fine, `coarse_dx`); the others start at the centre of
+        result of an earlier fit of the same data (`--start FIT.json`); the others start at the centre of
         their start ranges, and starts after the first are the Latin-hypercube points as usual. None: the
         centre of the start ranges. Each value must lie within its bounds (one on a bound starts just inside).
       max_iter: accepted iterations per start (None: DEFAULT_MAX_ITER of the optimizer).
