@@ -106,23 +106,68 @@ def plate_footprint(scene: Scene, t: float, camera: Camera, shape) -> np.ndarray
     The plate box (centre `Plate.position(t)`, half_size) is projected along the camera axis
     (z dropped in 3D); a pixel counts when its square overlaps the projected rectangle.
     """
+    out = np.zeros(tuple(shape), bool)
+    for plate in scene.plates:
+        box = _plate_box_pixels(plate, t, camera, shape)
+        if box is not None:
+            r0, r1, c0, c1 = box
+            out[r0:r1, c0:c1] = True
+    return out
+
+
+def _plate_box_pixels(plate, t: float, camera: Camera, shape) -> tuple[int, int, int, int] | None:
+    """(top row, bottom row exclusive, first column, last column exclusive) of the pixels a plate covers at
+    time t (s), clipped to the image (row 0 at the top); None when it covers none."""
     H, W = shape
     p = camera.pixel_size
     x0, y0 = camera.origin
-    out = np.zeros((H, W), bool)
+    c = np.asarray(plate.position(t), float)[:2]
+    h = np.asarray(plate.half_size, float)[:2]
+    # EDGE_TOL: an edge on a pixel boundary (up to round-off) does not claim the next pixel.
+    j_lo = max(int(math.floor((c[0] - h[0] - x0) / p + EDGE_TOL)), 0)
+    j_hi = min(int(math.ceil((c[0] + h[0] - x0) / p - EDGE_TOL)), W)  # exclusive
+    r_lo = max(int(math.floor((c[1] - h[1] - y0) / p + EDGE_TOL)), 0)  # rows counted from the bottom
+    r_hi = min(int(math.ceil((c[1] + h[1] - y0) / p - EDGE_TOL)), H)
+    if j_lo < j_hi and r_lo < r_hi:
+        return H - r_hi, H - r_lo, j_lo, j_hi
+    return None
+
+
+def glue_under_plates(scene: Scene, mask: np.ndarray, camera: Camera, t: float) -> np.ndarray:
+    """The first mask with the foam a sticky plate hides filled in: uint8 (H, W).
+
+    A camera cannot see foam where a plate covers it (those pixels are 0 in a mask, weight 0), yet a
+    sticky plate only holds material that reaches its nodes: foam seeded from the visible pixels alone
+    ends at the plate's face and grips it by less than a cell, by an amount that changes with dx (the
+    grip and the moment the foam tears off then follow the grid, not the foam). So, for each sticky plate
+    at time t (s), every pixel column whose pixel just outside the plate's bottom or top face shows foam
+    is filled through the plate's covered rows, and every row whose pixel just beside a side face does
+    through its covered columns: the foam is taken to continue into the plate where it meets it.
+    Non-sticky plates and pixels away from the faces the foam meets are left as they are.
+    """
+    m = np.asarray(mask).astype(bool)
+    out = m.copy()
+    H, W = m.shape
     for plate in scene.plates:
-        c = np.asarray(plate.position(t), float)[:2]
-        h = np.asarray(plate.half_size, float)[:2]
-        # EDGE_TOL: an edge on a pixel boundary (up to round-off) does not claim the next pixel.
-        j_lo = int(math.floor((c[0] - h[0] - x0) / p + EDGE_TOL))
-        j_hi = int(math.ceil((c[0] + h[0] - x0) / p - EDGE_TOL))  # exclusive
-        r_lo = int(math.floor((c[1] - h[1] - y0) / p + EDGE_TOL))  # rows counted from the bottom
-        r_hi = int(math.ceil((c[1] + h[1] - y0) / p - EDGE_TOL))
-        j_lo, j_hi = max(j_lo, 0), min(j_hi, W)
-        r_lo, r_hi = max(r_lo, 0), min(r_hi, H)
-        if j_lo < j_hi and r_lo < r_hi:
-            out[H - r_hi:H - r_lo, j_lo:j_hi] = True
-    return out
+        if not plate.sticky:
+            continue
+        box = _plate_box_pixels(plate, t, camera, (H, W))
+        if box is None:
+            continue
+        r0, r1, c0, c1 = box
+        cols = np.zeros(c1 - c0, bool)
+        if r1 < H:  # the row just below the bottom face (rows run downwards)
+            cols |= m[r1, c0:c1]
+        if r0 > 0:
+            cols |= m[r0 - 1, c0:c1]
+        out[r0:r1, c0:c1] |= cols[None, :]
+        rows = np.zeros(r1 - r0, bool)
+        if c0 > 0:
+            rows |= m[r0:r1, c0 - 1]
+        if c1 < W:
+            rows |= m[r0:r1, c1]
+        out[r0:r1, c0:c1] |= rows[:, None]
+    return out.astype(np.uint8)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -169,8 +214,11 @@ class Silhouettes:
 
     @property
     def first_mask(self) -> tuple[np.ndarray, dict]:
-        """(masks[0], camera dict): the `first_mask` argument of `jaxfoam.init_state` / `Simulator`."""
-        return self.masks[0], self.camera.as_dict()
+        """(mask, camera dict): the `first_mask` argument of `jaxfoam.init_state` / `Simulator`, the first
+        frame's mask with the foam its sticky plates hide filled in where the foam meets them
+        (`glue_under_plates`, at the first frame's time)."""
+        mask = glue_under_plates(self.load_scene(), self.masks[0], self.camera, float(self.times[0]))
+        return mask, self.camera.as_dict()
 
     def write(self, path: str | os.PathLike) -> None:
         """Write this dataset to `path` (see `write_silhouettes`)."""

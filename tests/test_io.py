@@ -6,8 +6,8 @@ import h5py
 import numpy as np
 import pytest
 
-from jaxfoam.io import (Camera, SilhouetteFormatError, camera_covering, plate_footprint, read_silhouettes,
-                        write_silhouettes)
+from jaxfoam.io import (Camera, SilhouetteFormatError, camera_covering, glue_under_plates, plate_footprint,
+                        read_silhouettes, write_silhouettes)
 from jaxfoam import load_scene
 
 SCENE = {
@@ -55,7 +55,9 @@ def test_round_trip_keeps_every_field(tmp_path):
     assert d.truth == {"mu": 100.0, "sigma_y": 30.0, "eta": 5.0, "m": 0.6, "kappa": 2000.0}
     assert d.load_scene().kind == "hanging_plate"
     mask0, cam = d.first_mask
-    assert cam["pixel_size"] == 0.01 and mask0.sum() == 70
+    # the 70 foam pixels, and the 10 the sticky plate hides in the columns where the foam meets its face
+    assert cam["pixel_size"] == 0.01 and mask0.sum() == 80
+    np.testing.assert_array_equal(mask0[4, 10:20], 1)
     with h5py.File(p) as fh:  # the spec's layout, literally
         assert fh.attrs["format"] == "jaxfoam-silhouettes" and fh.attrs["version"] == 1
         assert fh["masks"].dtype == np.uint8 and fh["times"].dtype == np.float64
@@ -180,3 +182,32 @@ def test_writer_refuses_what_the_reader_refuses(tmp_path):
     with pytest.raises(SilhouetteFormatError, match="unknown kind"):
         _valid(tmp_path / "w.h5", scene=dict(SCENE, kind="pour"))
     assert not (tmp_path / "w.h5").exists()
+
+
+def test_first_mask_continues_foam_into_the_sticky_plate_it_meets():
+    """A camera does not see foam behind a plate, yet a sticky plate holds only material that reaches its
+    nodes: the first mask is continued through the plate's covered pixels in the columns whose pixel just
+    below (or above) the plate shows foam, and in the rows whose pixel just beside it does; nothing else
+    changes, and a plate that is not sticky gets nothing."""
+    scene = load_scene(SCENE)
+    shape = (H, W)
+    fp = plate_footprint(scene, 0.0, CAMERA, shape)
+    rows, cols = np.nonzero(fp)
+    r0, r1, c0, c1 = rows.min(), rows.max() + 1, cols.min(), cols.max() + 1
+    assert (r0, r1, c0, c1) == (4, 6, 7, 23)
+    mask = np.zeros(shape, np.uint8)
+    mask[r1:r1 + 6, 10:14] = 1          # hangs below the bottom face in columns 10-13
+    mask[r1 + 3, 18] = 1                 # a pixel that does not touch the plate
+    mask[r0 + 1, c1:c1 + 3] = 1          # touches the right face in row 5
+    out = glue_under_plates(scene, mask, CAMERA, 0.0)
+    assert out.dtype == np.uint8 and out.shape == shape
+    added = (out > 0) & (mask == 0)
+    expect = np.zeros(shape, bool)
+    expect[r0:r1, 10:14] = True
+    expect[r0 + 1, c0:c1] = True
+    np.testing.assert_array_equal(added, expect)
+    assert not np.any(added & ~fp)
+    loose = load_scene(dict(SCENE, plate=dict(SCENE["plate"], sticky=False)))
+    np.testing.assert_array_equal(glue_under_plates(loose, mask, CAMERA, 0.0), mask)
+    empty = np.zeros(shape, np.uint8)
+    np.testing.assert_array_equal(glue_under_plates(scene, empty, CAMERA, 0.0), empty)
