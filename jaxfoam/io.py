@@ -134,38 +134,50 @@ def _plate_box_pixels(plate, t: float, camera: Camera, shape) -> tuple[int, int,
 
 
 def glue_under_plates(scene: Scene, mask: np.ndarray, camera: Camera, t: float) -> np.ndarray:
-    """The first mask with the foam a sticky plate hides filled in: uint8 (H, W).
+    """The first mask with the foam a sticky plate holds, and hides, filled in: uint8 (H, W).
 
     A camera cannot see foam where a plate covers it (those pixels are 0 in a mask, weight 0), yet a
     sticky plate only holds material that reaches its nodes: foam seeded from the visible pixels alone
     ends at the plate's face and grips it by less than a cell, by an amount that changes with dx (the
-    grip and the moment the foam tears off then follow the grid, not the foam). So, for each sticky plate
-    at time t (s), every pixel column whose pixel just outside the plate's bottom or top face shows foam
-    is filled through the plate's covered rows, and every row whose pixel just beside a side face does
-    through its covered columns: the foam is taken to continue into the plate where it meets it.
-    Non-sticky plates and pixels away from the faces the foam meets are left as they are.
+    grip, and the moment hanging foam tears off, then follow the grid, not the foam). Foam that nothing
+    below supports at the start (a connected piece of the mask that does not reach the floor, or the
+    domain's bottom without one) hangs from the plates it meets. So, for each sticky plate at time t (s),
+    and each such unsupported piece, every pixel column whose pixel just below the plate's bottom face
+    shows that piece is continued through the plate's covered rows, and every row whose pixel just
+    beside a side face does through its covered columns: the foam is taken to continue into the plate.
+    Foam resting on the floor (say, under a plate about to squeeze it) or on a plate's top face is left as
+    it is, as are non-sticky plates.
     """
+    from .track import label_components  # the tracker's labeling (track imports this module)
+
     m = np.asarray(mask).astype(bool)
     out = m.copy()
     H, W = m.shape
-    for plate in scene.plates:
-        if not plate.sticky:
-            continue
+    sticky = [pl for pl in scene.plates if pl.sticky]
+    if not sticky or not m.any():
+        return out.astype(np.uint8)
+    labels, _ = label_components(m, 8)
+    # y (m) of each row's lower edge; a piece reaching within a pixel of the floor rests on it
+    p, y0 = camera.pixel_size, camera.origin[1]
+    floor = scene.floor_y if scene.floor_y is not None else scene.domain_min[1]
+    row_bottom = y0 + (H - 1 - np.arange(H)) * p
+    lowest = {}
+    for lab in range(1, int(labels.max()) + 1):
+        rows = np.nonzero(np.any(labels == lab, axis=1))[0]
+        lowest[lab] = row_bottom[rows.max()]
+    hanging = np.isin(labels, [lab for lab, y in lowest.items() if y > floor + p])
+    for plate in sticky:
         box = _plate_box_pixels(plate, t, camera, (H, W))
         if box is None:
             continue
         r0, r1, c0, c1 = box
-        cols = np.zeros(c1 - c0, bool)
         if r1 < H:  # the row just below the bottom face (rows run downwards)
-            cols |= m[r1, c0:c1]
-        if r0 > 0:
-            cols |= m[r0 - 1, c0:c1]
-        out[r0:r1, c0:c1] |= cols[None, :]
+            out[r0:r1, c0:c1] |= hanging[r1, c0:c1][None, :]
         rows = np.zeros(r1 - r0, bool)
         if c0 > 0:
-            rows |= m[r0:r1, c0 - 1]
+            rows |= hanging[r0:r1, c0 - 1]
         if c1 < W:
-            rows |= m[r0:r1, c1]
+            rows |= hanging[r0:r1, c1]
         out[r0:r1, c0:c1] |= rows[:, None]
     return out.astype(np.uint8)
 
