@@ -17,8 +17,13 @@ resident set is reset (Linux /proc/self/clear_refs = 5) and the working memory o
 VmHWM - VmRSS(before the call) from /proc/self/status, and the peak VmHWM itself (runtime and
 compiled code included) is listed too.
 
-Writes experiments/bench_grad.md (or bench_grad_quick.md with --quick) next to this script.
-Usage: python experiments/bench_grad.py [--quick]
+With --one-core every worker process is pinned to one CPU core (sched_setaffinity), so XLA runs one
+thread: wall and CPU time then agree and measure the work of each call, without the second core that
+some calls use and others do not, and without the thread pool's spin-waiting that CPU time counts.
+
+Writes experiments/bench_grad.md (bench_grad_quick.md with --quick, bench_grad_1core.md with
+--one-core) next to this script.
+Usage: python experiments/bench_grad.py [--quick] [--one-core]
 """
 from __future__ import annotations
 
@@ -131,7 +136,12 @@ def worker_memory(dx, frames, mode):
                 maxrss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
 
 
-def _run_worker(args, cache_dir):
+def _pin_one_core():
+    """Pin the calling (child) process to the lowest CPU core it may run on."""
+    os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+
+
+def _run_worker(args, cache_dir, one_core=False):
     cmd = [sys.executable, os.path.abspath(__file__), "--worker"] + [str(a) for a in args]
     # The timing process compiles first and fills a persistent cache private to this benchmark run;
     # the memory processes load from it instead of compiling again (compile time is not measured there).
@@ -140,7 +150,7 @@ def _run_worker(args, cache_dir):
                # a fixed mmap threshold: buffers >= 64 kB are mapped and unmapped one by one, so freed
                # buffers of the warm-up call are not kept in malloc's arenas and reused unseen
                MALLOC_MMAP_THRESHOLD_="65536")
-    res = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    res = subprocess.run(cmd, capture_output=True, text=True, env=env, preexec_fn=_pin_one_core if one_core else None)
     if res.returncode != 0:
         raise RuntimeError(f"worker {args} failed:\n{res.stderr[-3000:]}")
     return json.loads(res.stdout.strip().splitlines()[-1])
@@ -186,6 +196,7 @@ def _table(time_rows, mem_rows):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one coarse grid, 3 frames, 2 repeats (a fast check)")
+    ap.add_argument("--one-core", action="store_true", help="pin every worker to one CPU core (writes bench_grad_1core.md)")
     ap.add_argument("--worker", nargs="+", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
@@ -203,19 +214,23 @@ def main(argv=None):
     for dx in cfg["dxs"]:
         modes = _modes_for(dx, cfg["dxs"])
         print(f"dx = {dx} m: timing {', '.join(modes)} ...", flush=True)
-        time_rows.append(_run_worker(["time", dx, cfg["frames"], cfg["repeats"], ",".join(modes)], cache_dir))
+        time_rows.append(_run_worker(["time", dx, cfg["frames"], cfg["repeats"], ",".join(modes)], cache_dir,
+                                     args.one_core))
         for m in modes:
             print(f"dx = {dx} m: memory of {m} ...", flush=True)
-            mem_rows.append(_run_worker(["memory", dx, cfg["frames"], m], cache_dir))
+            mem_rows.append(_run_worker(["memory", dx, cfg["frames"], m], cache_dir, args.one_core))
     shutil.rmtree(cache_dir, ignore_errors=True)
     table, verdicts = _table(time_rows, mem_rows)
     import jax
     import jaxfoam as jf
-    name = "bench_grad_quick.md" if args.quick else "bench_grad.md"
+    name = f"bench_grad{'_quick' if args.quick else ''}{'_1core' if args.one_core else ''}.md"
+    flags = (" --quick" if args.quick else "") + (" --one-core" if args.one_core else "")
+    cores = (f"every worker process pinned to 1 of {os.cpu_count()} CPU cores" if args.one_core
+             else f"{os.cpu_count()} CPU cores")
     body = (f"# Gradient cost: 2D hanging plate\n\n"
             f"_{'quick' if args.quick else 'full'} run; regenerate with `python experiments/bench_grad.py"
-            f"{' --quick' if args.quick else ''}` ({time.perf_counter() - t_start:.0f} s). "
-            f"{platform.machine()}, {os.cpu_count()} CPU cores shared with other jobs, JAX {jax.__version__}, "
+            f"{flags}` ({time.perf_counter() - t_start:.0f} s). "
+            f"{platform.machine()}, {cores} shared with other jobs, JAX {jax.__version__}, "
             f"float64, {time.strftime('%Y-%m-%d')}._\n\n"
             f"Scene `experiments/scenes/hanging_plate_2d.json`, parameters {PARAMS}, {cfg['frames']} frames "
             f"{FRAME_DT} s apart, CFL substeps. forward = rollout + per-frame mean height (T,); reverse = "
