@@ -133,7 +133,8 @@ def _plate_box_pixels(plate, t: float, camera: Camera, shape) -> tuple[int, int,
     return None
 
 
-def glue_under_plates(scene: Scene, mask: np.ndarray, camera: Camera, t: float) -> np.ndarray:
+def glue_under_plates(scene: Scene, mask: np.ndarray, camera: Camera, t: float,
+                      weights: np.ndarray | None = None) -> np.ndarray:
     """The first mask with the foam a sticky plate holds, and hides, filled in: uint8 (H, W).
 
     A camera cannot see foam where a plate covers it (those pixels are 0 in a mask, weight 0), yet a
@@ -142,17 +143,20 @@ def glue_under_plates(scene: Scene, mask: np.ndarray, camera: Camera, t: float) 
     grip, and the moment hanging foam tears off, then follow the grid, not the foam). Foam that nothing
     below supports at the start (a connected piece of the mask that does not reach the floor, or the
     domain's bottom without one) hangs from the plates it meets. So, for each sticky plate at time t (s),
-    and each such unsupported piece, every pixel column whose pixel just below the plate's bottom face
-    shows that piece is continued through the plate's covered rows, and every row whose pixel just
-    beside a side face does through its covered columns: the foam is taken to continue into the plate.
-    Foam resting on the floor (say, under a plate about to squeeze it) or on a plate's top face is left as
-    it is, as are non-sticky plates.
+    and each such unsupported piece, every pixel column of the plate whose first foam pixel below the
+    plate's bottom face belongs to that piece is continued up through the plate's covered rows, and every
+    row of the plate whose first foam pixel beside a side face does, through its covered columns. Between
+    the face and that pixel there may only be ignored pixels (weight 0: `jaxfoam track` blanks a margin of
+    PLATE_MARGIN pixels around each plate), which are filled too; with no weights given, the foam must
+    touch the face. Foam resting on the floor (say, under a plate about to squeeze it) or on a plate's
+    top face is left as it is, as are non-sticky plates.
     """
     from .track import label_components  # the tracker's labeling (track imports this module)
 
     m = np.asarray(mask).astype(bool)
     out = m.copy()
     H, W = m.shape
+    ignored = np.zeros((H, W), bool) if weights is None else (np.asarray(weights) <= 0) & ~m
     sticky = [pl for pl in scene.plates if pl.sticky]
     if not sticky or not m.any():
         return out.astype(np.uint8)
@@ -166,19 +170,32 @@ def glue_under_plates(scene: Scene, mask: np.ndarray, camera: Camera, t: float) 
         rows = np.nonzero(np.any(labels == lab, axis=1))[0]
         lowest[lab] = row_bottom[rows.max()]
     hanging = np.isin(labels, [lab for lab, y in lowest.items() if y > floor + p])
+
+    def reach(line_mask, line_ignored):
+        """Index of the first pixel along a line (from the face outwards) past ignored pixels, and whether
+        it holds hanging foam."""
+        k = 0
+        while k < len(line_mask) and line_ignored[k]:
+            k += 1
+        return k, k < len(line_mask) and bool(line_mask[k])
+
     for plate in sticky:
         box = _plate_box_pixels(plate, t, camera, (H, W))
         if box is None:
             continue
         r0, r1, c0, c1 = box
-        if r1 < H:  # the row just below the bottom face (rows run downwards)
-            out[r0:r1, c0:c1] |= hanging[r1, c0:c1][None, :]
-        rows = np.zeros(r1 - r0, bool)
-        if c0 > 0:
-            rows |= hanging[r0:r1, c0 - 1]
-        if c1 < W:
-            rows |= hanging[r0:r1, c1]
-        out[r0:r1, c0:c1] |= rows[:, None]
+        for c in range(c0, c1):  # below the bottom face (rows run downwards)
+            k, hit = reach(hanging[r1:, c], ignored[r1:, c])
+            if hit:
+                out[r0:r1 + k, c] = True
+        for r in range(r0, r1):  # beside the side faces
+            k, hit = reach(hanging[r, c0 - 1::-1] if c0 > 0 else hanging[r, :0],
+                           ignored[r, c0 - 1::-1] if c0 > 0 else ignored[r, :0])
+            if hit:
+                out[r, c0 - k:c1] = True
+            k, hit = reach(hanging[r, c1:], ignored[r, c1:])
+            if hit:
+                out[r, c0:c1 + k] = True
     return out.astype(np.uint8)
 
 
@@ -227,9 +244,10 @@ class Silhouettes:
     @property
     def first_mask(self) -> tuple[np.ndarray, dict]:
         """(mask, camera dict): the `first_mask` argument of `jaxfoam.init_state` / `Simulator`, the first
-        frame's mask with the foam its sticky plates hide filled in where the foam meets them
-        (`glue_under_plates`, at the first frame's time)."""
-        mask = glue_under_plates(self.load_scene(), self.masks[0], self.camera, float(self.times[0]))
+        frame's mask with the foam that hangs from its sticky plates filled in where they hide it
+        (`glue_under_plates`, at the first frame's time, with its weights)."""
+        mask = glue_under_plates(self.load_scene(), self.masks[0], self.camera, float(self.times[0]),
+                                 self.weights[0])
         return mask, self.camera.as_dict()
 
     def write(self, path: str | os.PathLike) -> None:

@@ -210,6 +210,18 @@ def test_first_mask_continues_hanging_foam_into_the_sticky_plate():
     expect[r0:r1, 10:14] = True
     expect[r0 + 1, c0:c1] = True
     np.testing.assert_array_equal(added, expect)
+    # a tracked video blanks a margin around the plate (weight 0): foam that starts below that margin is
+    # continued through it; the same gap with weight 1 is seen to be empty, so nothing is filled
+    gap = np.zeros(shape, np.uint8)
+    gap[r1 + 2:r1 + 8, 10:14] = 1
+    w = np.ones(shape, np.float32)
+    w[r0 - 2:r1 + 2, c0 - 2:c1 + 2] = 0.0
+    filled = glue_under_plates(scene, gap, CAMERA, 0.0, weights=w)
+    expect = gap.astype(bool).copy()
+    expect[r0:r1 + 2, 10:14] = True
+    np.testing.assert_array_equal(filled > 0, expect)
+    np.testing.assert_array_equal(glue_under_plates(scene, gap, CAMERA, 0.0, weights=np.ones(shape)), gap)
+    np.testing.assert_array_equal(glue_under_plates(scene, gap, CAMERA, 0.0), gap)
     loose = load_scene(dict(SCENE, plate=dict(SCENE["plate"], sticky=False)))
     np.testing.assert_array_equal(glue_under_plates(loose, mask, CAMERA, 0.0), mask)
     empty = np.zeros(shape, np.uint8)
