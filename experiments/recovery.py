@@ -335,7 +335,7 @@ main table to data changed one way at a time, none chosen from these results. Fi
 than the fit), 4x the boundary noise with 30% of frames dropped, 1.25 mm pixels, and masks grown by one
 pixel leave the fits about where the main table's bias already puts them: the truth is inside 22-23 of
 24 intervals per variant (the main table's same six fits: 22/24), mu is within 10% in one fit of six in
-each (main: one). A boundary drawn one pixel (2.5 mm) further out moved mu by -3% to +9% relative to the
+each (main: one). A boundary drawn one pixel (2.5 mm) further out moved mu by -9 to +2 percentage points of the
 truth (hanging plate +12%, +6%, -57% against +15%, +5%, -59%; drop -20%, -41%, -73% against -20%, -37%,
 -64%) and raised the hanging plate's fitted loss 1.5-4x: the fit does not absorb a renderer's or
 tracker's boundary offset into the parameters. With 4x finer data
