@@ -59,7 +59,7 @@ from ._scene import Scene, init_state
 from ._simulate import Simulator, _rollout_jit
 from .fracture import FractureConfig
 from .resample import ResampleConfig
-from .io import Camera, Silhouettes, read_silhouettes
+from .io import Camera, Silhouettes, plate_footprint, read_silhouettes
 from .silhouette import (BSPLINE_SUPPORT, RenderConfig, make_render_config, make_target, particle_spacing,
                          pyramid, render_frames, residuals)
 
@@ -794,7 +794,7 @@ def build_problem(data: Silhouettes, settings: FitSettings | None = None) -> Cal
     spacing = particle_spacing(dx, ppc, d)
     level = (choose_pixel_level(data.camera.pixel_size, spacing, data.image_shape) if settings.pixel_level is None
              else int(settings.pixel_level))
-    masks, weights, camera = pyramid(data, level + 1)[level]
+    masks, weights, camera = pyramid(without_plate_pixels(data, scene), level + 1)[level]
     masks, weights = masks[used], weights[used]
     if not np.any(weights > 0):
         raise CalibrationError("weights: every pixel of the used frames has weight 0; nothing to fit")
@@ -828,6 +828,22 @@ def correlation_area(images: np.ndarray, window: int) -> float:
     cols = np.r_[0:min(w + 1, W), shape[1] - np.arange(1, min(w, W - 1) + 1)]
     block = acov[np.ix_(rows, cols)] / c0
     return max(1.0, float(np.sum(np.maximum(block, 0.0))))
+
+
+def without_plate_pixels(data: Silhouettes, scene) -> Silhouettes:
+    """The data with weight 0 wherever a plate of the scene covers a pixel at that frame's time.
+
+    A plate is solid in the image plane: foam seen there in a video lies in front of or behind it (3D) or
+    is not there at all (2D), while the simulation holds foam inside a sticky plate, the layer it grips
+    (and `Silhouettes.first_mask` continues hanging foam into it). The fit compares neither. `jaxfoam
+    synth` and `jaxfoam track` already write weight 0 there; files from elsewhere may not.
+    """
+    if not scene.plates:
+        return data
+    keep = np.stack([~plate_footprint(scene, float(t), data.camera, data.image_shape) for t in data.times])
+    if np.all(data.weights[~keep] == 0):
+        return data
+    return dataclasses.replace(data, weights=(data.weights * keep).astype(np.float32))
 
 
 def fit_uncertainty(problem: CalibrationProblem, z, r=None, J=None, level: float = DEFAULT_LEVEL):

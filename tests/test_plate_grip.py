@@ -13,6 +13,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from jaxfoam import Params, load_scene, simulate
 
@@ -77,6 +78,10 @@ def test_first_mask_start_grips_the_plate_like_the_exact_shape(monkeypatch):
 
     l_exact, l_mask = truth_loss(exact), truth_loss(masked)
     assert l_mask < 2.0 * l_exact, (l_mask, l_exact)
+    # a file that leaves the plate's pixels at weight 1 (the spec's weights are optional): the fit ignores
+    # them all the same (`calibrate.without_plate_pixels`), so the loss is the one with weight 0 there
+    unweighted = dataclasses.replace(masked, weights=np.ones_like(masked.weights))
+    assert truth_loss(unweighted) == pytest.approx(l_mask, rel=1e-9)
     # as `jaxfoam track` writes it: a margin of PLATE_MARGIN pixels around the plate blanked (weight 0),
     # so the foam seen starts below that margin
     from jaxfoam.io import plate_footprint
