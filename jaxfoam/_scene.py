@@ -371,6 +371,46 @@ def inside_initial_shape(scene: Scene, points: np.ndarray, first_mask=None) -> n
         _inside_mask(np.stack([cx - r, points[:, 1]], 1), mask, p, origin)
 
 
+def continued_into_plates(scene: Scene, pts: np.ndarray, inside: np.ndarray, spacing: float) -> np.ndarray:
+    """(n,) bool: sample points (n, d) that continue a hanging primitive shape into the sticky plate it meets.
+
+    A sticky plate holds only material that reaches its nodes; a shape that ends at a plate's bottom or
+    side face (within half a particle `spacing`, m) grips it by less than a cell, by an amount that
+    changes with dx: a box ending at the face of the data format's example board hung until 0.4 s at
+    dx = 1 cm and had fallen by then at 5 and 2.5 mm. So where a shape that does not rest on the floor
+    (its lowest point more than a spacing above it, or above the domain's bottom without one) meets
+    such a face from outside without entering the plate, the plate's sample points in line with it
+    (across that face) are added: the foam is taken to continue into the plate, as the scenes that
+    overlap their plates model it. Shapes that already enter the plate there, foam resting on the floor
+    (a squeeze under a plate) and plates' top faces are left alone.
+    """
+    out = np.zeros(len(pts), bool)
+    sticky = [pl for pl in scene.plates if pl.sticky]
+    if not sticky or not inside.any():
+        return out
+    d = scene.dim
+    floor = scene.floor_y if scene.floor_y is not None else scene.domain_min[1]
+    if pts[inside, 1].min() <= floor + spacing:
+        return out
+    delta = 0.5 * spacing
+    for plate in sticky:
+        c = np.asarray(plate.position(0.0), float)[:d]
+        h = np.asarray(plate.half_size, float)[:d]
+        cand = np.nonzero(np.all(np.abs(pts - c) <= h, axis=1) & ~inside)[0]
+        if len(cand) == 0:
+            continue
+        hit = np.zeros(len(cand), bool)
+        # the bottom face (axis 1, below) and the side faces (every other axis, both sides)
+        for a, sgn in [(1, -1.0)] + [(a, s) for a in range(d) if a != 1 for s in (-1.0, 1.0)]:
+            face = c[a] + sgn * h[a]
+            outside, within = pts[cand].copy(), pts[cand].copy()
+            outside[:, a] = face + sgn * delta
+            within[:, a] = face - sgn * delta
+            hit |= inside_initial_shape(scene, outside) & ~inside_initial_shape(scene, within)
+        out[cand[hit]] = True
+    return out
+
+
 def sample_particles(scene: Scene, dx: float, ppc: int | None = None, seed: int = 0, first_mask=None):
     """Jittered-grid sampling of the initial shape: returns (positions (n, d) m, volume per particle m^d).
 
@@ -398,6 +438,8 @@ def sample_particles(scene: Scene, dx: float, ppc: int | None = None, seed: int 
     pts = (lo + (cells[:, None, :] + local) * dx).reshape(-1, d)
     pts = pts[np.all(pts < hi, axis=1)]
     keep = inside_initial_shape(scene, pts, first_mask)
+    if first_mask is None:  # a first mask is continued into its plates on the image (io.glue_under_plates)
+        keep |= continued_into_plates(scene, pts, keep, dx / ppc ** (1.0 / d))
     pts = pts[keep]
     if len(pts) == 0:
         raise SceneError("initial_shape: no particle falls inside the shape at this dx")

@@ -97,3 +97,44 @@ def test_first_mask_start_grips_the_plate_like_the_exact_shape(monkeypatch):
     monkeypatch.setattr(io.Silhouettes, "first_mask", property(lambda self: (self.masks[0], self.camera.as_dict())))
     l_visible = truth_loss(masked)
     assert l_visible > 100.0 * l_mask, (l_visible, l_mask)
+
+
+# The data format's example scene (shared/specs/silhouettes.md): a 1 cm board; here a box of foam that
+# ends exactly at the board's bottom face instead of entering it.
+TOUCHING = {
+    "kind": "hanging_plate", "dim": 2, "gravity": [0.0, -9.81], "density": 80.0, "kappa": 2000.0,
+    "domain": {"min": [-0.15, 0.0], "max": [0.15, 0.35]}, "floor": {"y": 0.0, "friction": 0.5},
+    "plate": {"center": [0.0, 0.30], "half_size": [0.08, 0.005],
+              "motion": {"type": "sinusoid", "axis": [1.0, 0.0], "amplitude": 0.01, "frequency": 3.0,
+                         "phase": 0.0, "ramp_time": 0.3}, "sticky": True},
+    "initial_shape": {"type": "box", "min": [-0.05, 0.23], "max": [0.05, 0.295]},
+}
+
+
+def test_shape_ending_at_a_sticky_face_is_continued_into_the_plate():
+    """A primitive shape that meets a sticky plate's bottom face without entering it is continued into
+    the plate (`jaxfoam._scene.continued_into_plates`), so the grip no longer depends on the grid: before,
+    this box hung until 0.4 s at dx = 1 cm but had fallen by then at 5 mm (mean height 0.231 m against
+    0.038 m, measured). Shapes that already enter their plate, or rest on the floor, are not changed."""
+    from jaxfoam._scene import continued_into_plates, inside_initial_shape
+
+    sc = load_scene(TOUCHING)
+    p = Params(mu=HOLDING["mu"], kappa=sc.kappa, sigma_y=HOLDING["sigma_y"], eta=HOLDING["eta"], m=HOLDING["m"],
+               rho=sc.density)
+    heights = []
+    for dx in (0.01, 0.005):
+        tr = simulate(sc, p, np.array([0.4]), dx)
+        x0 = np.asarray(tr.frames["x"])[0]
+        heights.append(float(x0[:, 1].mean()))
+    assert abs(heights[0] - heights[1]) < 0.01 and min(heights) > 0.25, heights
+    # the points added lie in the plate, in the box's columns, and fill its thickness
+    pts = np.stack(np.meshgrid(np.linspace(-0.1, 0.1, 81), np.linspace(0.2, 0.31, 45), indexing="ij"), -1).reshape(-1, 2)
+    inside = inside_initial_shape(sc, pts)
+    added = pts[continued_into_plates(sc, pts, inside, 0.0025)]
+    assert len(added) and np.all(np.abs(added[:, 0]) <= 0.05) and np.all(np.abs(added[:, 1] - 0.30) <= 0.005)
+    assert added[:, 1].max() - added[:, 1].min() > 0.0049  # 0.2975-0.3025 m: the lattice rows in the board
+    # unchanged: the study's hanging plate (its box enters the board) and a squeeze (foam on the floor)
+    for name in ("hanging_plate_2d", "squeeze_2d"):
+        other = load_scene(json.loads((SCENE.parent / f"{name}.json").read_text()))
+        ins = inside_initial_shape(other, pts)
+        assert not continued_into_plates(other, pts, ins, 0.0025).any(), name
