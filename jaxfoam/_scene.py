@@ -379,10 +379,10 @@ def continued_into_plates(scene: Scene, pts: np.ndarray, inside: np.ndarray, spa
     changes with dx: a box ending at the face of the data format's example board hung until 0.4 s at
     dx = 1 cm and had fallen by then at 5 and 2.5 mm. So where a shape that does not rest on the floor
     (its lowest point more than a spacing above it, or above the domain's bottom without one) meets
-    such a face from outside without entering the plate, the plate's sample points in line with it
-    (across that face) are added: the foam is taken to continue into the plate, as the scenes that
-    overlap their plates model it. Shapes that already enter the plate there, foam resting on the floor
-    (a squeeze under a plate) and plates' top faces are left alone.
+    such a face from outside, the plate's sample points in line with it (across that face) are added:
+    the foam is taken to continue into the plate, as the scenes that overlap their plates model it. A
+    plate the shape already enters anywhere (the scene models its glue itself), foam resting on the
+    floor (a squeeze under a plate) and plates' top faces are left alone.
     """
     out = np.zeros(len(pts), bool)
     sticky = [pl for pl in scene.plates if pl.sticky]
@@ -396,7 +396,10 @@ def continued_into_plates(scene: Scene, pts: np.ndarray, inside: np.ndarray, spa
     for plate in sticky:
         c = np.asarray(plate.position(0.0), float)[:d]
         h = np.asarray(plate.half_size, float)[:d]
-        cand = np.nonzero(np.all(np.abs(pts - c) <= h, axis=1) & ~inside)[0]
+        in_plate = np.all(np.abs(pts - c) <= h, axis=1)
+        if np.any(in_plate & inside):  # the scene already puts material in this plate: its glue as modelled
+            continue
+        cand = np.nonzero(in_plate)[0]
         if len(cand) == 0:
             continue
         hit = np.zeros(len(cand), bool)

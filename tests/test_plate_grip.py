@@ -115,7 +115,8 @@ def test_shape_ending_at_a_sticky_face_is_continued_into_the_plate():
     """A primitive shape that meets a sticky plate's bottom face without entering it is continued into
     the plate (`jaxfoam._scene.continued_into_plates`), so the grip no longer depends on the grid: before,
     this box hung until 0.4 s at dx = 1 cm but had fallen by then at 5 mm (mean height 0.231 m against
-    0.038 m, measured). Shapes that already enter their plate, or rest on the floor, are not changed."""
+    0.038 m, measured). Shapes that already enter their plate anywhere (the scene models the glue), or
+    rest on the floor, are not changed."""
     from jaxfoam._scene import continued_into_plates, inside_initial_shape
 
     sc = load_scene(TOUCHING)
