@@ -788,9 +788,8 @@ def _probe_table(probe: list[dict], lm: list[dict], names, base_scene) -> str:
         # the base fit on the probe's grid when there is one, else the study's
         base = next((b for b in same if b["dx_fit"] == r["dx_fit"]), same[0] if same else None)
         for x in ([base] if base else []) + [r]:
-            xc = case_of(x)
-            w = xc.window
-            label = x["scene"] + (f", t {w[0]:g}-{w[1]:g} s" if w else "") + (f", {xc.tag}" if xc.tag else "")
+            w = case_of(x).window
+            label = x["scene"] + (f", t {w[0]:g}-{w[1]:g} s" if w else "")
             rows.append([label, x["set"], f"{x['dx_fit'] * 1e3:.2f}", f"{x['dx_data'] * 1e3:.2f}"]
                         + [_fmt_err(x["evaluation"][n]) for n in names]
                         + [f"{x['fit']['loss']:.3g}", f"{_truth_loss_of(x):.3g}", _fmt_gof(x),
@@ -801,7 +800,7 @@ def _probe_table(probe: list[dict], lm: list[dict], names, base_scene) -> str:
 
 def _varied_table(varied: list[dict], lm: list[dict], names) -> str:
     """Per (scene, set): the main table's fit, then each data variant's (DATA order)."""
-    order = {c.tag: i for i, c in enumerate(DATA)}
+    order = {t: i for i, t in enumerate(dict.fromkeys(c.tag for c in DATA))}
     rows = []
     for scene, k in sorted({(r["scene"], r["set"]) for r in varied}):
         base = [b for b in lm if b["scene"] == scene and b["set"] == k]

@@ -160,16 +160,16 @@ def glue_under_plates(scene: Scene, mask: np.ndarray, camera: Camera, t: float,
     sticky = [pl for pl in scene.plates if pl.sticky]
     if not sticky or not m.any():
         return out.astype(np.uint8)
-    labels, _ = label_components(m, 8)
-    # y (m) of each row's lower edge; a piece reaching within a pixel of the floor rests on it
+    labels, sizes = label_components(m, 8)
+    # each piece's lowest row (rows run downwards), and the y (m) of that row's lower edge: a piece
+    # reaching within a pixel of the floor rests on it
+    lowest = np.zeros(len(sizes) + 1, np.int64)
+    np.maximum.at(lowest, labels[m], np.nonzero(m)[0])
     p, y0 = camera.pixel_size, camera.origin[1]
     floor = scene.floor_y if scene.floor_y is not None else scene.domain_min[1]
-    row_bottom = y0 + (H - 1 - np.arange(H)) * p
-    lowest = {}
-    for lab in range(1, int(labels.max()) + 1):
-        rows = np.nonzero(np.any(labels == lab, axis=1))[0]
-        lowest[lab] = row_bottom[rows.max()]
-    hanging = np.isin(labels, [lab for lab, y in lowest.items() if y > floor + p])
+    hangs = y0 + (H - 1 - lowest) * p > floor + p
+    hangs[0] = False  # background
+    hanging = hangs[labels]
 
     def reach(line_mask, line_ignored):
         """Index of the first pixel along a line (from the face outwards) past ignored pixels, and whether
