@@ -24,7 +24,8 @@ lift causes, and fits the 2D scenes on the fitter's default grid (DEFAULT_GRID, 
 half its spacing), what a user who keeps the default gets. The hanging plate and the drop are also
 fitted to data made otherwise, one change at a time (DATA): on a grid 4x finer than the fit, with 4x the
 boundary noise and 3x the dropped frames, through a camera with finer pixels, from a scene that starts
-at the first mask as a tracked video's does, and with masks grown by a pixel. Goals (issue 4): mu and sigma_y within 10%,
+at the first mask as a tracked video's does, with masks grown by a pixel, and simulated with other
+numerics (9 particles per cell, CFL 0.5, float32) as another simulator's would be. Goals (issue 4): mu and sigma_y within 10%,
 m within 0.1, eta within 25% (or reported not identifiable with an interval containing the truth);
 truth inside the interval in >= 90% of cases; a 2D fit under 15 minutes on 2 CPU cores.
 
@@ -44,6 +45,7 @@ import math
 import time
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 
 import fitting
@@ -92,6 +94,13 @@ class SceneCase:
     pixel_size: float | None = None
     first_mask: bool = False
     dilate_px: int = 0  # masks grown by this many pixels where the weight is not 0 (a fatter renderer)
+    # The data simulation's own numerics (None: synthesize's defaults, the fit's: 4 particles per cell in
+    # 2D, CFL 0.3, float64), as another simulator's would differ.
+    ppc: int | None = None
+    cfl: float | None = None
+    data_dtype: str = "float64"
+    # The fit's floating-point precision (`FitSettings.dtype`); the data are the same case's in float64.
+    fit_dtype: str = "float64"
 
 
 # Fit resolutions: ~8-10 cells across the foam in 2D, ~6 in 3D (the cost of one Jacobian grows as
@@ -146,13 +155,21 @@ PROBES = FINE + SLIP + CONTACT + WINDOW + DEFAULT_GRID
 # with 1.25 mm pixels (2.5 mm), so the fitter coarsens the images by 2^2; `mask` the file's scene starts
 # from its first, noisy, mask (`first_mask`), as a tracked video's does, instead of the exact primitive;
 # `fat` every mask grown by one pixel (2.5 mm), as a renderer or tracker that draws the boundary a pixel
-# further out would give.
+# further out would give; `numerics` the data simulated with other numerics than the fit's, as another MPM
+# code's would be: 9 particles per cell (4), CFL 0.5 (0.3) and float32 (float64).
 DATA = [SceneCase(name, 0.01, dur, 12, **var) for var in (
             dict(tag="fine4", data_ratio=4.0), dict(tag="noisy", noise=0.2, drop_frames=0.3),
-            dict(tag="pix", pixel_size=0.00125), dict(tag="mask", first_mask=True), dict(tag="fat", dilate_px=1))
+            dict(tag="pix", pixel_size=0.00125), dict(tag="mask", first_mask=True), dict(tag="fat", dilate_px=1),
+            dict(tag="numerics", ppc=9, cfl=0.5, data_dtype="float32"))
         for name, dur in (("hanging_plate_2d", 0.8), ("drop_2d", 0.4))] + [
     # the squeeze starts from its first mask too: its foam rests on the floor with the plate just above it
     SceneCase("squeeze_2d", 0.01, 1.4, 12, tag="mask", first_mask=True)]
+# Precision probe: the main table's 2D fits and the default grid's squeeze (its slowest fits, 15.6 and
+# 17.5 min) again in float32 (`FitSettings.dtype`, `jaxfoam fit --dtype float32`) on the same data files,
+# the same budget: float32 steps run about 1.6x faster in 2D (experiments/bench_step.md); does a fit keep
+# its accuracy, and how much of that speed does it keep?
+PRECISION = [dataclasses.replace(c, fit_dtype="float32") for c in FULL if not c.name.endswith("3d")] + [
+    dataclasses.replace(c, fit_dtype="float32") for c in DEFAULT_GRID if c.name == "squeeze_2d"]
 # Budgets: starts and iterations per optimizer; the optimizer comparison runs on the same data. The full
 # study's 2D LM fits take the fitter's default number of starts, as a user's fit would (on an idle 2-core
 # machine one 2D start takes 0.5-2 min); 3D fits (8-12 min a start) and the L-BFGS and Adam comparison
@@ -390,10 +407,13 @@ def plan(quick: bool, n_sets: int | None = None) -> list[tuple]:
         jobs.extend((20 + k, c, k, "lm") for k in sets for c in FINE + SLIP + CONTACT + WINDOW)
         jobs.extend((25 + k, c, k, "lm") for k in sets for c in DATA)
         jobs.extend((30 + k, c, k, "lm") for k in sets for c in DEFAULT_GRID)
+        jobs.extend(((35 if c.dx_fit != 0.01 else 27) + k, c, k, "lm") for k in sets for c in PRECISION)
     return sorted(jobs, key=lambda j: j[0])
 
 
 def case_id(c: SceneCase, k: int, quick: bool) -> str:
+    if c.fit_dtype != "float64":  # a fit setting: the prefix, then that of the same case in float64
+        return "f32_" + case_id(dataclasses.replace(c, fit_dtype="float64"), k, quick)
     if c in WINDOW:  # the window's prefix, then that of the same case without it (the data's)
         return "win_" + case_id(dataclasses.replace(c, window=None), k, quick)
     if c.tag:
@@ -403,9 +423,9 @@ def case_id(c: SceneCase, k: int, quick: bool) -> str:
 
 
 def data_path(c: SceneCase, k: int, quick: bool) -> Path:
-    """The synthetic silhouette file of a case; a fit window changes the fit, not the data, so a case with
-    one shares the file of the same case without it."""
-    return WORK / f"{case_id(dataclasses.replace(c, window=None), k, quick)}_data.h5"
+    """The synthetic silhouette file of a case; a fit window or the fit's precision changes the fit, not
+    the data, so such a case shares the file of the same case without it."""
+    return WORK / f"{case_id(dataclasses.replace(c, window=None, fit_dtype='float64'), k, quick)}_data.h5"
 
 
 def make_data(c: SceneCase, k: int, quick: bool) -> tuple[Path, float]:
@@ -419,7 +439,9 @@ def make_data(c: SceneCase, k: int, quick: bool) -> tuple[Path, float]:
     truth = truth_sets()[k]
     data = synthesize(scene, truth, dx=c.dx_fit / c.data_ratio, frames=c.frames, duration=c.duration,
                       pixel_size=c.pixel_size, noise=c.noise, drop_frames=c.drop_frames, seed=k,
-                      first_mask=c.first_mask, progress=lambda m: print("  synth:", m, flush=True))
+                      first_mask=c.first_mask, progress=lambda m: print("  synth:", m, flush=True),
+                      **({} if c.ppc is None else dict(ppc=c.ppc)), **({} if c.cfl is None else dict(cfl=c.cfl)),
+                      dtype=jnp.float32 if c.data_dtype == "float32" else jnp.float64)
     if c.dilate_px:
         from jaxfoam.track import dilate
 
@@ -464,7 +486,8 @@ def _fit_problem(c: SceneCase, k: int, quick: bool):
     from jaxfoam.calibrate import build_problem
 
     data = read_silhouettes(data_path(c, k, quick))
-    return data, build_problem(data, FitSettings(dx=c.dx_fit, optimizer="lm", seed=0, time_window=c.window))
+    return data, build_problem(data, FitSettings(dx=c.dx_fit, optimizer="lm", seed=0, time_window=c.window,
+                                                 dtype=c.fit_dtype))
 
 
 def truth_loss(c: SceneCase, k: int, quick: bool) -> float:
@@ -605,6 +628,8 @@ def _truth_frames_table(recs: list[dict]) -> str:
 
 def case_of(r: dict) -> SceneCase:
     """The SceneCase of a finished record (quick records from QUICK, the others from FULL or PROBES)."""
+    if r["case"].startswith("f32_"):
+        return dataclasses.replace(case_of(dict(r, case=r["case"][len("f32_"):])), fit_dtype="float32")
     tagged = [c for c in DATA if r["case"] == case_id(c, r["set"], False)]
     if tagged:
         return tagged[0]
@@ -717,7 +742,7 @@ def run_job(c: SceneCase, k: int, opt: str, quick: bool) -> Path:
     data = read_silhouettes(data_path)
     b = BUDGET[quick]
     settings = FitSettings(dx=c.dx_fit, optimizer=opt, starts=starts_for(c, opt, quick), max_iter=b["iters"][opt],
-                           seed=0, time_window=c.window)
+                           seed=0, time_window=c.window, dtype=c.fit_dtype)
     t0 = time.perf_counter()
     res = calibrate(data, settings, log=log, resume=True, progress=lambda m: print("  " + m, flush=True))
     fit = res.to_dict()
@@ -755,7 +780,7 @@ def _histories(log: Path) -> dict:
 
 def load_records(quick: bool) -> list[dict]:
     recs = []
-    for c in (QUICK if quick else FULL + PROBES + DATA):
+    for c in (QUICK if quick else FULL + PROBES + DATA + PRECISION):
         for k in range(N_SETS):
             for opt in ("lm", "lbfgs", "adam"):
                 p = CASES / f"{case_id(c, k, quick)}_{opt}.json"
@@ -788,8 +813,10 @@ def _probe_table(probe: list[dict], lm: list[dict], names, base_scene) -> str:
         # the base fit on the probe's grid when there is one, else the study's
         base = next((b for b in same if b["dx_fit"] == r["dx_fit"]), same[0] if same else None)
         for x in ([base] if base else []) + [r]:
-            w = case_of(x).window
-            label = x["scene"] + (f", t {w[0]:g}-{w[1]:g} s" if w else "")
+            cx = case_of(x)
+            w = cx.window
+            label = (x["scene"] + (f", t {w[0]:g}-{w[1]:g} s" if w else "")
+                     + (f", {cx.fit_dtype}" if cx.fit_dtype != "float64" else ""))
             rows.append([label, x["set"], f"{x['dx_fit'] * 1e3:.2f}", f"{x['dx_data'] * 1e3:.2f}"]
                         + [_fmt_err(x["evaluation"][n]) for n in names]
                         + [f"{x['fit']['loss']:.3g}", f"{_truth_loss_of(x):.3g}", _fmt_gof(x),
@@ -824,8 +851,9 @@ def _data_section(varied: list[dict], lm: list[dict], names) -> str:
            "boundary flips 0.2 and 30% of frames dropped (0.05, 10%); `pix` 1.25 mm camera pixels (2.5 mm), "
            "which the fitter coarsens; `mask` the file's scene starts from its first, noisy, mask, as a tracked "
            "video's does, not from the exact primitive; `fat` every mask grown by one pixel (2.5 mm), as a renderer "
-           "or tracker that draws the boundary a pixel further out would. Beside each, the main table's fit of "
-           "the same set.\n\n",
+           "or tracker that draws the boundary a pixel further out would; `numerics` the data simulated with "
+           "another simulator's numerics: 9 particles per cell, CFL 0.5 and float32 (the fit: 4, 0.3, float64). "
+           "Beside each, the main table's fit of the same set.\n\n",
            _varied_table(varied, lm, names), "\n"]
     base = {(r["scene"], r["set"]) for r in varied}
     same = [r for r in lm if (r["scene"], r["set"]) in base]
@@ -839,6 +867,30 @@ def _data_section(varied: list[dict], lm: list[dict], names) -> str:
                      f"{max(r['fit']['wall_time'] for r in rs) / 60:.1f} min per fit.\n")
     out.append(f"- the main table's fits of the same sets: inside {inside0}/{n0}, goal met {goals0}/{n0}; within the "
                "error goal: " + ", ".join(f"{p} {within0[p]}/{len(same)}" for p in names) + ".\n")
+    return "".join(out)
+
+
+def _precision_section(f32: list[dict], base: list[dict], names) -> str:
+    """The PRECISION probe: each float32 fit beside the float64 fit of the same data, and per grid the
+    coverage, goal counts and the wall time against float64's."""
+    out = [f"\n## Fits in float32 (main table's 2D fits and the default grid's squeeze; LM, {DEFAULT_STARTS} starts)\n\n"
+           "The same data files, grids and budget as the float64 fits beside them, with the fit's rollouts, "
+           "Jacobians and renderer in float32 (`jaxfoam fit --dtype float32`). The wall-time ratio is float64's "
+           "over float32's, per fit.\n\n",
+           _probe_table(f32, base, names, base_scene=lambda r: r["scene"]), "\n"]
+    for dx in sorted({r["dx_fit"] for r in f32}, reverse=True):
+        rs = [r for r in f32 if r["dx_fit"] == dx]
+        pairs = [(r, next(b for b in base if b["scene"] == r["scene"] and b["set"] == r["set"] and b["dx_fit"] == dx))
+                 for r in rs]
+        n, inside_v, goals_v, within_v = _tally(rs, names)
+        n0, inside0, goals0, within0 = _tally([b for _, b in pairs], names)
+        speed = [b["fit"]["wall_time"] / r["fit"]["wall_time"] for r, b in pairs]
+        out.append(f"- dx {dx * 1e3:.2f} mm, float32: truth inside the combined interval in {inside_v}/{n} "
+                   f"parameter-cases, goal met in {goals_v}/{n} (float64: {inside0}/{n0}, {goals0}/{n0}); within the "
+                   "error goal: " + ", ".join(f"{p} {within_v[p]}/{len(rs)} ({within0[p]})" for p in names)
+                   + f"; wall time {min(r['fit']['wall_time'] for r in rs) / 60:.1f}-"
+                     f"{max(r['fit']['wall_time'] for r in rs) / 60:.1f} min per fit, "
+                     f"{min(speed):.2f}-{max(speed):.2f}x faster than float64.\n")
     return "".join(out)
 
 
@@ -928,8 +980,9 @@ def report(quick: bool, n_sets: int | None = None) -> None:
     slip = [r for r in recs if any(r["scene"] == c.name for c in SLIP)]
     contact = [r for r in recs if any(r["scene"] == c.name for c in CONTACT)]
     win = [r for r in recs if r["case"].startswith("win_")]
+    f32 = [r for r in recs if r["case"].startswith("f32_")]
     varied = [r for r in recs if case_of(r).tag]
-    recs = [r for r in recs if not r["case"].startswith(("fine_", "dflt_", "win_")) and r not in slip
+    recs = [r for r in recs if not r["case"].startswith(("fine_", "dflt_", "win_", "f32_")) and r not in slip
             and r not in contact and r not in varied]
     lm = [r for r in recs if r["optimizer"] == "lm"]
     names = list(GOALS)
@@ -1080,6 +1133,8 @@ def report(quick: bool, n_sets: int | None = None) -> None:
         body.append(_default_grid_section(dflt, lm, names))
     if varied:
         body.append(_data_section(varied, lm, names))
+    if f32:
+        body.append(_precision_section(f32, lm + dflt, names))
     body.append(_refit_section(lm))
     body.append(_check_change_section([("main table, 1 cm (3D: 16 mm)", lm), ("default grid", dflt),
                                        ("probes: finer grid, floor, contact, window", fine + slip + contact + win)],

@@ -26,7 +26,7 @@ import numpy as np
 
 from ._params import FIT_FIELDS, Params
 from ._scene import DEFAULT_PPC, Scene, load_scene
-from ._simulate import Simulator
+from ._simulate import CFL, Simulator
 from .io import Camera, Silhouettes, camera_covering, plate_footprint, validate, write_silhouettes
 from .silhouette import HALF_DENSITY, make_render_config, particle_spacing, splat_density
 
@@ -97,7 +97,7 @@ def boundary_pixels(mask: np.ndarray) -> np.ndarray:
 def synthesize(scene: Scene | dict | str, params: dict, dx: float | None = None, ppc: int | None = None,
                frames: int = 16, duration: float = 1.0, pixel_size: float | None = None, noise: float = 0.05,
                drop_frames: float = 0.0, seed: int = 0, dtype=jnp.float64, first_mask: bool = False,
-               progress=None) -> Silhouettes:
+               cfl: float = CFL, progress=None) -> Silhouettes:
     """Simulate a scene and render it as tracked-video silhouettes.
 
     Args:
@@ -113,6 +113,8 @@ def synthesize(scene: Scene | dict | str, params: dict, dx: float | None = None,
       seed: seed of particle sampling, noise and dropped frames.
       first_mask: record the scene with initial_shape 'first_mask' (a fit then starts from the first,
         noisy, mask as it would with real data) instead of the primitive used to simulate.
+      cfl: CFL number of the simulation's time step (default the simulator's, 0.3); data made with
+        another time step than the fit's emulate another simulator's numerics.
       progress: optional callable(str) for status lines.
     Returns the validated `Silhouettes` (write it with `.write(path)`).
     """
@@ -145,7 +147,7 @@ def synthesize(scene: Scene | dict | str, params: dict, dx: float | None = None,
     times = np.linspace(0.0, float(duration), frames)
 
     t0 = time.perf_counter()
-    sim = Simulator(scene, times[1:], p, dx, ppc, dtype=dtype, seed=seed)
+    sim = Simulator(scene, times[1:], p, dx, ppc, dtype=dtype, cfl=cfl, seed=seed)
     _, traj, health = sim.rollout(p)
     sim.check(traj, health)
     say(f"simulated {frames - 1} frames to t = {duration:g} s: {int(np.sum(sim.state0.active))} particles, "
@@ -176,7 +178,7 @@ def synthesize(scene: Scene | dict | str, params: dict, dx: float | None = None,
         spec = dict(spec, initial_shape={"type": "first_mask"})
     source = json.dumps(dict(generator="jaxfoam synth", dx=dx, ppc=ppc, pixel_size=pixel_size, noise=noise,
                              drop_frames=drop_frames, frames=frames, duration=duration, seed=seed,
-                             dt=sim.dt, substeps=sim.substeps, dtype=str(jnp.dtype(dtype)),
+                             dt=sim.dt, substeps=sim.substeps, cfl=cfl, dtype=str(jnp.dtype(dtype)),
                              simulated_initial_shape=scene.initial_shape))
     truth = dict(params, kappa=scene.kappa, rho=scene.density)
     return validate(masks[keep], times[keep], camera, spec, weights=weights[keep], source=source, truth=truth)
@@ -206,6 +208,8 @@ def add_synth_parser(subparsers) -> argparse.ArgumentParser:
                     help="fraction of frames after the first removed at random (default 0)")
     ap.add_argument("--seed", type=int, default=0, help="seed of sampling, noise and dropped frames")
     ap.add_argument("--dtype", choices=("float32", "float64"), default="float64")
+    ap.add_argument("--cfl", type=float, default=CFL,
+                    help=f"CFL number of the simulation's time step, in (0, 1] (default {CFL})")
     ap.add_argument("--first-mask", action="store_true",
                     help="record initial_shape 'first_mask' in the file's scene (fits start from the first mask)")
     ap.set_defaults(func=run_synth)
@@ -218,7 +222,7 @@ def run_synth(args) -> int:
                       duration=args.duration, pixel_size=args.pixel_size, noise=args.noise,
                       drop_frames=args.drop_frames, seed=args.seed,
                       dtype=jnp.float32 if args.dtype == "float32" else jnp.float64,
-                      first_mask=args.first_mask, progress=print)
+                      first_mask=args.first_mask, cfl=args.cfl, progress=print)
     data.write(args.out)
     T, H, W = data.shape
     print(f"wrote {args.out}: {T} frames of {H}x{W} pixels ({data.camera.pixel_size:g} m/pixel), "
