@@ -25,7 +25,8 @@ half its spacing), what a user who keeps the default gets. The hanging plate and
 fitted to data made otherwise, one change at a time (DATA): on a grid 4x finer than the fit, with 4x the
 boundary noise and 3x the dropped frames, through a camera with finer pixels, from a scene that starts
 at the first mask as a tracked video's does, with masks grown by a pixel, and simulated with other
-numerics (9 particles per cell, CFL 0.5, float32) as another simulator's would be. Goals (issue 4): mu and sigma_y within 10%,
+numerics (9 particles per cell, CFL 0.5, float32) as another simulator's would be. The main table's 2D
+fits and the default grid's squeeze are repeated in float32 (PRECISION) on the same data. Goals (issue 4): mu and sigma_y within 10%,
 m within 0.1, eta within 25% (or reported not identifiable with an interval containing the truth);
 truth inside the interval in >= 90% of cases; a 2D fit under 15 minutes on 2 CPU cores.
 

@@ -107,6 +107,22 @@ def test_synth_noise_flips_boundary_pixels_only(synth_clean, tmp_path):
     np.testing.assert_array_equal(again.masks, noisy.masks)
 
 
+def test_synth_cfl_sets_the_data_time_step_not_the_motion(synth_clean):
+    """`cfl` (another simulator's time step): the substeps scale as 1 / CFL (ceil) and are recorded in
+    the file's source; the silhouettes are those of the same motion (IoU > 0.95 against CFL 0.3)."""
+    src0 = json.loads(synth_clean.source)
+    assert src0["cfl"] == 0.3
+    d = synthesize(HANGING, PARAMS, noise=0.0, cfl=0.6, **SYNTH)
+    src = json.loads(d.source)
+    assert src["cfl"] == 0.6
+    assert src["substeps"] == pytest.approx(src0["substeps"] / 2, abs=1)
+    np.testing.assert_array_equal(d.times, synth_clean.times)
+    for a, b in zip(d.masks, synth_clean.masks):
+        assert _iou(a, b) > 0.95
+    with pytest.raises(ValueError, match="cfl"):
+        synthesize(HANGING, PARAMS, cfl=1.5, **SYNTH)
+
+
 def test_synth_rejects_bad_requests():
     with pytest.raises(ValueError, match="missing"):
         parse_params("mu=1,sigma_y=2")
