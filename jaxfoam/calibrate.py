@@ -146,6 +146,13 @@ FIT_FRACTURE = None
 # 1.13-1.31x faster per Jacobian on 2 cores shared with two other jobs (drop, 179 particles).
 # 1 evaluates every column in one sequential call; other backends always do.
 JACOBIAN_THREADS = 2
+# Every frame of a rollout runs the same number of substeps, sized for its widest frame interval, so a
+# gap in the data (a dropped frame) would shrink every frame's time step. The fit's rollouts record
+# frames at the data's times with unobserved frames inserted into each gap, so that no interval is wider
+# than the narrowest one (dropped frames of a video at a steady rate are filled back in exactly). At most
+# this many simulated frames per observed one (data with a few frames close together: then the inserted
+# frames are spaced at the duration / (this * observed frames)); a frame costs one sort and one record.
+MAX_FRAMES_PER_OBSERVED = 4
 
 
 class CalibrationError(ValueError):
@@ -554,6 +561,34 @@ class _Static:
     chamfer_weight: float
     resample: ResampleConfig | None = None
     fracture: FractureConfig | None = None
+    observed: tuple = ()  # indices of the observed frames among the rollout's (`simulation_frames`)
+
+
+def simulation_frames(t0: float, times, max_ratio: int = MAX_FRAMES_PER_OBSERVED) -> tuple[np.ndarray, np.ndarray]:
+    """The frame times (s) a fit's rollout records, and where the observed `times` are among them.
+
+    Each interval between t0 (s) and the observed times, in order, is split into equal parts no wider
+    than h, the narrowest interval (or duration / (max_ratio * len(times)) where that is wider), so the
+    substeps per frame, sized for the widest recorded interval, keep the CFL time step instead of
+    shrinking it for every frame when the data have gaps. Returns (frame times (S,), indices (F,) of the
+    observed times in them); without gaps they are `times` and arange(F)."""
+    times = np.asarray(times, float)
+    edges = np.concatenate([[float(t0)], times])
+    widths = np.diff(edges)
+    h = max(float(widths.min()), (edges[-1] - edges[0]) / (max_ratio * len(times)))
+    parts = np.maximum(1, np.ceil(widths / h * (1.0 - 1e-9))).astype(int)
+    out, idx = [], []
+    for a, b, n in zip(edges[:-1], edges[1:], parts):
+        out.extend(a + (b - a) * np.arange(1, n) / n)
+        out.append(b)
+        idx.append(len(out) - 1)
+    return np.asarray(out), np.asarray(idx)
+
+
+def _observed(frames: dict, static) -> tuple:
+    """Positions and active flags of a rollout's frames at the observed times (`_Static.observed`)."""
+    idx = np.asarray(static.observed)
+    return frames["x"][idx], frames["active"][idx]
 
 
 def _params_from(z, static: _Static, base: Params) -> Params:
@@ -565,7 +600,8 @@ def _residual(z, static: _Static, base: Params, state0, scene, frame_times, fram
     params = _params_from(z, static, base)
     _, frames, _ = _rollout_jit(state0, params, scene, frame_times, frame_dts, static.grid, static.substeps,
                                 observe_positions, False, static.resample, static.fracture)
-    return residuals(frames["x"], frames["active"], target, static.cfg, distance=static.distance_weight,
+    x, active = _observed(frames, static)
+    return residuals(x, active, target, static.cfg, distance=static.distance_weight,
                      chamfer_weight=static.chamfer_weight)
 
 
@@ -621,7 +657,8 @@ class CalibrationProblem:
 
     Attributes:
       data: the `Silhouettes`.  settings: the `FitSettings`.  scene: the parsed scene.
-      sim: the `Simulator` at the fit's dx (frame times = the data's times after the start).
+      sim: the `Simulator` at the fit's dx (frame times: the used data times, with unobserved frames
+        filling the gaps, `simulation_frames`; `observed` says which are the data's).
       transform: `fitting.ParameterTransform` of the fitted parameters.
       base: `Params` with the fixed and known values (fitted entries are placeholders).
       frames: (F,) indices into the data's frames that enter the residual.
@@ -630,16 +667,19 @@ class CalibrationProblem:
     """
 
     def __init__(self, data: Silhouettes, settings: FitSettings, sim: Simulator, transform, base: Params,
-                 frames: np.ndarray, level: int, masks, weights, camera: Camera, cfg: RenderConfig, target):
+                 frames: np.ndarray, level: int, masks, weights, camera: Camera, cfg: RenderConfig, target,
+                 observed=None):
         self.data, self.settings, self.sim, self.scene = data, settings, sim, sim.scene
         self.transform, self.base, self.frames = transform, base, frames
+        self.observed = np.arange(len(frames)) if observed is None else np.asarray(observed)
         self.pixel_level, self.masks, self.weights, self.camera, self.cfg = level, masks, weights, camera, cfg
         self.target = target
         self.dx = sim.dx
         self.static = _Static(transform=transform, grid=sim.grid, substeps=sim.substeps, cfg=cfg,
                               distance_weight=float(settings.distance_weight),
                               chamfer_weight=float(settings.chamfer_weight),
-                              resample=sim.resample, fracture=sim.fracture)
+                              resample=sim.resample, fracture=sim.fracture,
+                              observed=tuple(int(i) for i in self.observed))
         dt = sim.dtype
         self._times = jnp.asarray(sim.plan.frame_times, dt)
         self._dts = jnp.asarray(sim.plan.frame_dts, dt)
@@ -690,7 +730,7 @@ class CalibrationProblem:
         z = self.transform.to_unconstrained(theta)
         x, active, health = _positions(jnp.asarray(z, self.sim.dtype), *self._args())
         self.sim.check({"x": x}, health)
-        return np.asarray(x), np.asarray(active)
+        return np.asarray(x)[self.observed], np.asarray(active)[self.observed]
 
     def render(self, theta) -> np.ndarray:
         """Soft silhouettes (F, H, W) in [0, 1) at the observation level for parameters `theta`."""
@@ -788,7 +828,8 @@ def build_problem(data: Silhouettes, settings: FitSettings | None = None) -> Cal
     # sampled count (inactive slots are neither simulated nor rendered).
     resample = settings.resample_for(d, ppc)
     fracture = settings.fracture_for(d)
-    sim = Simulator(scene, times[used], ref, dx, ppc, dtype=dtype, state0=state0, cfl=FIT_CFL,
+    sim_times, observed = simulation_frames(t0, times[used])
+    sim = Simulator(scene, sim_times, ref, dx, ppc, dtype=dtype, state0=state0, cfl=FIT_CFL,
                     resample=resample, fracture=fracture)
 
     spacing = particle_spacing(dx, ppc, d)
@@ -800,7 +841,8 @@ def build_problem(data: Silhouettes, settings: FitSettings | None = None) -> Cal
         raise CalibrationError("weights: every pixel of the used frames has weight 0; nothing to fit")
     cfg = make_render_config(camera, masks.shape[1:], dx, ppc, d)
     target = make_target(masks, weights, camera, dtype=dtype)
-    return CalibrationProblem(data, settings, sim, transform, base, used, level, masks, weights, camera, cfg, target)
+    return CalibrationProblem(data, settings, sim, transform, base, used, level, masks, weights, camera, cfg, target,
+                              observed)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -1088,7 +1130,9 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
     sim = problem.sim
     say(f"fit: {problem.scene.kind} {problem.scene.dim}D, dx = {problem.dx:.4g} m, "
         f"{int(np.sum(sim.state0.active))} particles, {len(problem.frames)} frames "
-        f"(t = {sim.plan.frame_times[0]:.4g}..{sim.plan.frame_times[-1]:.4g} s), {sim.substeps} substeps/frame "
+        f"(t = {problem.data.times[problem.frames[0]]:.4g}..{problem.data.times[problem.frames[-1]]:.4g} s"
+        + (f"; {len(sim.plan.frame_times)} simulated, gaps filled" if len(sim.plan.frame_times) > len(problem.frames)
+           else "") + f"), {sim.substeps} substeps/frame "
         f"of dt = {sim.dt:.3g} s, images {problem.cfg.height}x{problem.cfg.width} px at level "
         f"{problem.pixel_level} ({problem.cfg.pixel_size:.3g} m/px); fitting {', '.join(names)} with "
         f"{settings.optimizer}, {settings.starts} start(s)"

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from jaxfoam.calibrate import (DX_CHECK_RATIO, FRAME_BOUNDARY_SPACINGS, GCI_SAFETY, CalibrationError, FitSettings,
-                               build_problem, calibrate, choose_pixel_level, discretization_error,
+                               build_problem, calibrate, choose_pixel_level, discretization_error, simulation_frames,
                                correlation_area, default_log_path, fit_transform, make_starts, parse_bounds,
                                parse_duration, parse_fixed, parse_start, silhouette_mismatch)
 from jaxfoam.cli import main
@@ -421,6 +421,44 @@ def test_float32_fit_problem_matches_float64_to_single_precision(slump):
     assert np.linalg.norm(r32 - r64) <= 3e-4 * np.linalg.norm(r64)
     for j in range(J64.shape[1]):
         assert np.linalg.norm(J32[:, j] - J64[:, j]) <= 3e-4 * np.linalg.norm(J64[:, j]), j
+
+
+def test_simulation_frames_fill_gaps_up_to_the_narrowest_interval():
+    """The fit's rollout records the observed times plus frames filling each gap, no interval wider than
+    the narrowest (or duration / (4 * observed) where that is wider)."""
+    t, idx = simulation_frames(0.0, [0.1, 0.2, 0.4, 0.5])
+    np.testing.assert_allclose(t, [0.1, 0.2, 0.3, 0.4, 0.5], atol=1e-15)
+    np.testing.assert_array_equal(idx, [0, 1, 3, 4])
+    t, idx = simulation_frames(0.0, [0.1, 0.2, 0.3])  # no gap: the observed times themselves
+    np.testing.assert_array_equal(t, [0.1, 0.2, 0.3])
+    np.testing.assert_array_equal(idx, [0, 1, 2])
+    t, idx = simulation_frames(0.1, [0.2, 0.35])  # irregular: 0.15 in two parts of 0.075
+    np.testing.assert_allclose(t, [0.2, 0.275, 0.35], atol=1e-15)
+    np.testing.assert_array_equal(idx, [0, 2])
+    t, idx = simulation_frames(0.0, [0.001, 1.0])  # two close frames: parts of at most 1 / (4 * 2) s
+    assert len(t) == 1 + 8 and np.max(np.diff(np.concatenate([[0.0], t]))) <= 0.125 + 1e-12
+    np.testing.assert_allclose(t[idx], [0.001, 1.0])
+
+
+def test_a_dropped_frame_keeps_the_time_step_and_the_other_frames_residuals(slump):
+    """Contract of the gap filling: data with a frame missing in the middle are fitted with the same
+    substeps per frame as the full data (before, every frame ran at half the time step: 2x the cost),
+    and its rollout is the full data's at the kept frames, to the last bit; the residual is the full
+    data's for those frames, scaled by sqrt(5 / 4) (`silhouette.residuals` divides by sqrt(frames))."""
+    full = read_silhouettes(slump[0])
+    keep = [i for i in range(len(full.times)) if i != 3]
+    gap = dataclasses.replace(full, masks=full.masks[keep], times=full.times[keep], weights=full.weights[keep])
+    pf, pg = (build_problem(d, SETTINGS) for d in (full, gap))
+    assert pg.sim.substeps == pf.sim.substeps
+    np.testing.assert_allclose(pg.sim.plan.frame_times, pf.sim.plan.frame_times, rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(pg.observed, [0, 1, 3, 4])
+    z = pf.transform.to_unconstrained({"sigma_y": 30.0})
+    rf = np.asarray(pf.residual(z)).reshape(len(pf.frames), -1)
+    rg = np.asarray(pg.residual(z)).reshape(len(pg.frames), -1)
+    np.testing.assert_allclose(rg, np.sqrt(5 / 4) * rf[[0, 1, 3, 4]], rtol=1e-12, atol=1e-300)
+    xf, _ = pf.simulate({"sigma_y": 30.0})
+    xg, _ = pg.simulate({"sigma_y": 30.0})
+    np.testing.assert_array_equal(xg, xf[[0, 1, 3, 4]])
 
 
 def test_a_stopped_fit_says_how_to_resume(slump, tmp_path, capsys, monkeypatch):
