@@ -1075,10 +1075,10 @@ def report(quick: bool, n_sets: int | None = None) -> None:
             f"number of substeps, sized for its widest frame interval, so until the fitter filled gaps in the "
             f"data with unobserved frames (`jaxfoam.calibrate.simulation_frames`), a frame dropped inside the "
             f"fitted span made every frame run at half (or a third of) the fit's CFL time step, for 2-3x the "
-            f"cost: the datasets of sets 1 and 2 have such a gap in every scene. The main table's LM fits and the "
-            f"default grid's squeeze fits were re-run with the gaps filled (the earlier records are kept as "
-            f"`<case>_lm.json.halved-dt`); {len(stale)} records below still ran at the narrower step and are "
-            f"marked † at their wall time (the optimizer comparison's, the probes' and the float32 fits', the "
+            f"cost: the datasets of sets 1 and 2 have such a gap in every scene. The main table's LM fits, the "
+            f"optimizer comparison's and the default grid's squeeze fits were re-run with the gaps filled (the "
+            f"earlier records are kept as `<case>_<optimizer>.json.halved-dt`); {len(stale)} records below still ran "
+            f"at the narrower step and are marked † at their wall time (the probes' and the float32 fits', the "
             f"last compared with the float64 fits made at the same step); their `loss at truth` is evaluated "
             f"with the gaps filled, as every other's.\n\n")
     if lm:
