@@ -133,7 +133,7 @@ FIT_CELLS = {2: 64, 3: 32}
 FIT_PPC = {2: 4, 3: 8}
 # CFL number: 3.3x margin to instability; larger CFL worsens the current hanging plate and channel flow (section 2).
 FIT_CFL = 0.3
-# Precision: float32 fits reach float64's optima but run only 0.9-1.3x as fast (recovery study; section 2).
+# Precision: float32 fits reach float64's optima but run only 1.0-1.5x as fast (recovery study; section 2).
 FIT_DTYPE = "float64"
 # Particle resampling and fracture in the fit's rollouts: off (None). Section 4: on the three 2D fit scenes
 # (32 cells) fracture changed no fit, resampling moved the parameters within the plain fit's 95% interval
