@@ -40,14 +40,6 @@ SORT_BY_CELL = True
 # the reverse-mode speed. 512 MB keeps scenes of that size on one level; large 3D scenes get blocks.
 FRAME_TAPE_BYTES = 512 * 2 ** 20
 
-# Reverse mode (`hand_adjoint=True`) keeps the last frame's per-substep store from the primal pass
-# instead of recomputing that frame: its backward pass runs first, and the store is freed before the
-# next frame's recomputation, so peak memory stays one frame's store (2D hanging plate, dx 2.5 mm, 10
-# frames: XLA working memory 122 -> 121 MB) for 1/T fewer frame recomputations (reverse 0.97x wall
-# time). A second frame kept that way adds its store (122 -> 333 MB) and measured no faster.
-# Only on the hand-adjoint path: the split scan compiles the frame twice, which forward runs skip.
-TAPED_FRAMES = 1
-
 
 def checkpoint_blocks(state0: State, grid: Grid, substeps: int, budget: float = FRAME_TAPE_BYTES) -> int:
     """Checkpointed blocks per frame for reverse mode: 1 while a frame's store (per substep: the
@@ -126,7 +118,7 @@ class Plan:
 
 def _rollout_impl(state0, params, scene, frame_times, frame_dts, grid, substeps, observe, checkpoint,
                   resample=None, fracture=None, colliders=(), sort=SORT_BY_CELL, hand_adjoint=False,
-                  blocks=1, taped=0):
+                  blocks=1):
     def frame(state, inputs):
         t_target, dt = inputs[:2]
 
@@ -170,28 +162,20 @@ def _rollout_impl(state0, params, scene, frame_times, frame_dts, grid, substeps,
         state = from_components(state).replace(t=t_target)
         return state, (observe(state, params), _health(state))
 
+    if checkpoint:
+        # Reverse mode stores one state per frame and recomputes the frame, storing each substep's
+        # input state and REMAT_SAVED values; each substep is then recomputed (elementwise parts only)
+        # inside its backward pass: peak memory grows with the number of frames and the substeps per
+        # frame, not with the total number of substeps.
+        frame = jax.checkpoint(frame)
     xs = (frame_times, frame_dts) if resample is None else (frame_times, frame_dts, jnp.arange(len(frame_times)))
-    if not checkpoint:
-        final, (frames, health) = jax.lax.scan(frame, state0, xs)
-        return final, frames, health
-    # Reverse mode stores one state per frame and recomputes the frame, storing each substep's input
-    # state and REMAT_SAVED values; each substep is then recomputed (elementwise parts only) inside its
-    # backward pass: peak memory grows with the number of frames and the substeps per frame, not with
-    # the total number of substeps. The last `taped` frames (TAPED_FRAMES) are not recomputed: their
-    # primal pass keeps that store, which their backward pass then reads.
-    head = len(frame_times) - min(int(taped), len(frame_times))
-    parts, state = [], state0
-    for body, lo, hi in ((jax.checkpoint(frame), 0, head), (frame, head, len(frame_times))):
-        if hi > lo:
-            state, out = jax.lax.scan(body, state, jax.tree_util.tree_map(lambda a: a[lo:hi], xs))
-            parts.append(out)
-    frames, health = jax.tree_util.tree_map(lambda *a: jnp.concatenate(a), *parts)
-    return state, frames, health
+    final, (frames, health) = jax.lax.scan(frame, state0, xs)
+    return final, frames, health
 
 
 _rollout_jit = jax.jit(_rollout_impl, static_argnames=("grid", "substeps", "observe", "checkpoint", "resample",
                                                        "fracture", "colliders", "sort", "hand_adjoint",
-                                                       "blocks", "taped"))
+                                                       "blocks"))
 
 
 class Simulator:
@@ -297,8 +281,7 @@ class Simulator:
         return _rollout_jit(state0, params, scene, jnp.asarray(self.plan.frame_times, self.dtype),
                             jnp.asarray(self.plan.frame_dts, self.dtype), self.grid, self.plan.substeps,
                             observe, checkpoint, self.resample, self.fracture, self.colliders, self.sort,
-                            hand_adjoint, self.checkpoint_blocks,
-                            TAPED_FRAMES if (checkpoint and hand_adjoint) else 0)
+                            hand_adjoint, self.checkpoint_blocks)
 
     def check(self, frames, health) -> None:
         """Raise SimulationError naming the first frame, time, quantity and particle that went bad."""
