@@ -568,6 +568,18 @@ def truth_frames(c: SceneCase, k: int, quick: bool) -> dict:
 REFIT_ITERATIONS = 4
 
 
+def _cached_check(r: dict, kind: str) -> tuple[Path, dict | None]:
+    """The cache file CASES/<case>_<kind>.json of a check on finished fit r, and its content (None if absent)."""
+    path = CASES / f"{r['case']}_{kind}.json"
+    return path, (json.loads(path.read_text()) if path.exists() else None)
+
+
+def _fit_and_data(r: dict):
+    """(SceneCase, fit dict, Silhouettes) of finished fit record r."""
+    c = case_of(r)
+    return c, r["fit"], read_silhouettes(data_path(c, r["set"], r["case"].startswith("q_")))
+
+
 def refit_check(r: dict, compute: bool = True) -> dict | None:
     """How far the estimate of a finished LM fit moves between its grid and the discretization check's finer
     one (dx * DX_CHECK_RATIO; the fit's pixel level, time window and seed): the fit is continued for at most
@@ -576,16 +588,12 @@ def refit_check(r: dict, compute: bool = True) -> dict | None:
     set against the check's predicted move (both of its estimates) and its numerical error, in fitted
     coordinates. Uses no truth: it tests the check itself. Cached in CASES/<case>_refit.json; None when not
     cached and `compute` is False."""
-    path = CASES / f"{r['case']}_refit.json"
-    if path.exists():
-        return json.loads(path.read_text())
-    if not compute:
-        return None
+    path, cached = _cached_check(r, "refit")
+    if cached is not None or not compute:
+        return cached
     from jaxfoam.calibrate import DX_CHECK_RATIO, fit_transform, make_starts
 
-    c = case_of(r)
-    fit = r["fit"]
-    data = read_silhouettes(data_path(c, r["set"], r["case"].startswith("q_")))
+    c, fit, data = _fit_and_data(r)
     start = {n: fit["params"][n] for n in fit["fitted"]}
     same = FitSettings(dx=c.dx_fit, optimizer="lm", seed=0, time_window=c.window, starts=1, initial=start,
                        max_iter=REFIT_ITERATIONS, pixel_level=fit["settings"]["pixel_level"], dx_check=False)
@@ -624,16 +632,12 @@ def shift_check(r: dict, compute: bool = True) -> dict | None:
     refinement check samples one grid per spacing; where the result depends on how the node lattice falls on
     the geometry (a sticky face, a floor, the initial shape), a shift shows it. Uses no truth. Cached in
     CASES/<case>_shift.json; None when not cached and `compute` is False."""
-    path = CASES / f"{r['case']}_shift.json"
-    if path.exists():
-        return json.loads(path.read_text())
-    if not compute:
-        return None
+    path, cached = _cached_check(r, "shift")
+    if cached is not None or not compute:
+        return cached
     from jaxfoam.calibrate import build_problem
 
-    c = case_of(r)
-    fit = r["fit"]
-    data = read_silhouettes(data_path(c, r["set"], r["case"].startswith("q_")))
+    c, fit, data = _fit_and_data(r)
     settings = FitSettings(dx=c.dx_fit, optimizer="lm", seed=0, time_window=c.window,
                            pixel_level=fit["settings"]["pixel_level"], dx_check=False)
     t0 = time.perf_counter()
@@ -1398,17 +1402,13 @@ def main(argv=None) -> None:
     ap.add_argument("--sets", type=int, default=None,
                     help=f"parameter sets per scene (default 1 with --quick, {N_SETS} without)")
     args = ap.parse_args(argv)
-    if args.refit_check:
+    for wanted, label, check in ((args.refit_check, "refit", refit_check), (args.shift_check, "shift", shift_check)):
+        if not wanted:
+            continue
         for r in load_records(args.quick):
             if r["optimizer"] == "lm" and case_of(r) in (QUICK if args.quick else FULL):
-                print(f"== refit check {r['case']}", flush=True)
-                refit_check(r)
-        args.report = True
-    if args.shift_check:
-        for r in load_records(args.quick):
-            if r["optimizer"] == "lm" and case_of(r) in (QUICK if args.quick else FULL):
-                print(f"== shift check {r['case']}", flush=True)
-                shift_check(r)
+                print(f"== {label} check {r['case']}", flush=True)
+                check(r)
         args.report = True
     if not args.report:
         for _, c, k, opt in plan(args.quick, args.sets):
