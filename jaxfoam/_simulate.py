@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._compile_guard import release_if_near_map_limit
 from ._constitutive import deviatoric_stress_norm, det
 from ._mpm import Grid, _substep, from_components, make_grid, make_step, sort_by_cell, to_components, unsort
 from ._params import Params
@@ -223,6 +224,9 @@ class Simulator:
         times = np.asarray(frame_times, float).ravel()
         if times.size == 0 or not np.all(np.isfinite(times)):
             raise ValueError("frame_times must be a non-empty list of finite times in s")
+        # A process that binds many simulators (fits of many datasets or grids) frees its compiled
+        # programs before it runs out of memory mappings (jaxfoam._compile_guard).
+        release_if_near_map_limit()
         self.scene = scene
         self.dtype = jnp.dtype(dtype)
         self.dx = float(dx)

@@ -1,0 +1,53 @@
+"""A guard against running out of memory mappings when one process compiles many programs.
+
+Every compiled XLA:CPU program keeps its machine code in memory mappings, and JAX keeps each compiled
+program in its caches for the life of the process (`_rollout_jit` and the calibration's jitted
+residual and Jacobian are compiled once per grid, scene and fit setting, and reused). A fit problem
+at a new grid spacing added about 720 mappings (2D drop, dx 1 cm: 680 -> 1,448 -> 2,166 -> 2,884 for
+three problems; `jax.clear_caches()` brought it back to 710). Linux caps a process at
+vm.max_map_count mappings (65,530 by default): the recovery study's driver, after about 36 fits with
+their discretization checks in one process, died with "LLVM compilation error: Cannot allocate
+memory" and a segmentation fault. A notebook or script that fits many datasets or grids in one
+process would meet the same end.
+
+`release_if_near_map_limit` is called before a new `Simulator` is bound (so before every fit
+problem): when the process holds more than MAP_FRACTION of the limit it clears JAX's caches, which
+frees the compiled programs; programs still in use are compiled again on their next call. It reads
+the counts from /proc and does nothing where they are not available.
+"""
+from __future__ import annotations
+
+import jax
+
+# Fraction of vm.max_map_count above which compiled programs are released: half the limit leaves room
+# for ~45 more fit problems before the next check, and is not reached by ordinary sessions (a fresh
+# process with jaxfoam loaded holds ~700 mappings).
+MAP_FRACTION = 0.5
+
+
+def _map_count() -> int | None:
+    try:
+        with open("/proc/self/maps", "rb") as fh:
+            return sum(1 for _ in fh)
+    except OSError:
+        return None
+
+
+def _map_limit() -> int | None:
+    try:
+        with open("/proc/sys/vm/max_map_count") as fh:
+            return int(fh.read().strip())
+    except (OSError, ValueError):
+        return None
+
+
+def release_if_near_map_limit(count: int | None = None, limit: int | None = None) -> bool:
+    """Clear JAX's caches of compiled programs if this process holds more than MAP_FRACTION of its
+    allowed memory mappings. count, limit: the process's mappings and the limit (read from /proc when
+    None). Returns whether the caches were cleared."""
+    count = _map_count() if count is None else count
+    limit = _map_limit() if limit is None else limit
+    if count is None or limit is None or limit <= 0 or count <= MAP_FRACTION * limit:
+        return False
+    jax.clear_caches()
+    return True
