@@ -635,34 +635,26 @@ def shift_check(r: dict, compute: bool = True) -> dict | None:
     path, cached = _cached_check(r, "shift")
     if cached is not None or not compute:
         return cached
-    from jaxfoam.calibrate import build_problem
+    from jaxfoam.calibrate import build_problem, make_starts, predicted_move
 
     c, fit, data = _fit_and_data(r)
-    settings = FitSettings(dx=c.dx_fit, optimizer="lm", seed=0, time_window=c.window,
+    settings = FitSettings(dx=c.dx_fit, optimizer="lm", seed=0, time_window=c.window, starts=1,
+                           initial={n: fit["params"][n] for n in fit["fitted"]},
                            pixel_level=fit["settings"]["pixel_level"], dx_check=False)
     t0 = time.perf_counter()
     base = build_problem(data, settings)
     tr = base.transform
-    # a parameter that ended on a bound is taken just inside it (the transform is open there), as
-    # jaxfoam.calibrate.make_starts does for a start there
-    theta = [min(max(float(fit["params"][n]), lo + 1e-9 * (hi - lo)), hi - 1e-9 * (hi - lo))
-             for n, (lo, hi) in ((n, settings.bounds_of(n)) for n in tr.names)]
-    z = tr.to_unconstrained(np.asarray(theta))
+    # the optimum as a start (a parameter that ended on a bound is taken just inside it)
+    z = make_starts(tr, settings)[0][0]
     r0, J0 = (np.asarray(a, np.float64) for a in base.residual_and_jacobian(z))
-    F, p = len(base.frames), J0.shape[1]
-    npix = base.cfg.height * base.cfg.width
-    Jp = J0.reshape(F, -1, p)[:, :npix].reshape(-1, p)
-    step0 = np.linalg.lstsq(J0, -r0, rcond=None)[0]
     moves = {}
     for frac in SHIFT_FRACTIONS:
         scene = json.loads(data.scene_json)
         h = frac * c.dx_fit
         scene["domain"] = {k: [v - h for v in scene["domain"][k]] for k in ("min", "max")}
         other = build_problem(dataclasses.replace(data, scene_json=json.dumps(scene)), settings)
-        ro, Jo = (np.asarray(a, np.float64) for a in other.residual_and_jacobian(z))
-        rp, rc = r0.reshape(F, -1)[:, :npix], ro.reshape(F, -1)[:, :npix]
-        moves[str(frac)] = dict(fit_jacobian=[float(v) for v in np.linalg.lstsq(Jp, -(rc - rp).ravel(), rcond=None)[0]],
-                                own_jacobians=[float(v) for v in np.linalg.lstsq(Jo, -ro, rcond=None)[0] - step0])
+        with_fit, with_own, _ = predicted_move(base, other, z, J0, r0)
+        moves[str(frac)] = dict(fit_jacobian=[float(v) for v in with_fit], own_jacobians=[float(v) for v in with_own])
     out = dict(names=list(tr.names), fractions=list(SHIFT_FRACTIONS), moves=moves,
                error_z=fit["settings"]["dx_check"]["error_z"], shift_z=fit["settings"]["dx_check"]["shift_z"],
                wall=time.perf_counter() - t0)

@@ -934,25 +934,38 @@ def discretization_error(problem: CalibrationProblem, z, J, ratio: float = DX_CH
     """
     settings = dataclasses.replace(problem.settings, dx=problem.dx * ratio, pixel_level=problem.pixel_level)
     other = build_problem(problem.data, settings)
+    p = np.shape(J)[1]
+    with_fit, with_own, frame_change = predicted_move(problem, other, z, J, r)
+    if details is not None:
+        details["frame_change"] = frame_change
+    if with_fit is None:
+        return np.full(p, np.inf), np.full(p, np.nan)
+    if details is not None:
+        details["shift_fit_jacobian"], details["shift_own_jacobians"] = with_fit, with_own
+    shift = np.where(np.abs(with_own) > np.abs(with_fit), with_own, with_fit)
+    return GCI_SAFETY * np.abs(shift) / abs(ratio ** DX_CHECK_ORDER - 1.0), shift
+
+
+def predicted_move(problem: CalibrationProblem, other: CalibrationProblem, z, J, r=None):
+    """First-order estimates of how far the estimate z moves from `problem`'s discretization to `other`'s
+    (the same observations and pixel level; another grid): (with the fit grid's Jacobian, with each grid's
+    own, per-frame norm of the pixel-residual change (F,)), the first two (p,) in fitted coordinates, or
+    None where a residual or Jacobian is not finite (`discretization_error` has the two formulas). J, r:
+    the Jacobian and residual at z on `problem`'s grid (r computed if None)."""
     F = len(problem.frames)
     npix = problem.cfg.height * problem.cfg.width
     J = np.asarray(J, np.float64)
     p = J.shape[1]
     r = np.asarray(problem.residual(z) if r is None else r, np.float64)
-    ro, Jo = other.residual_and_jacobian(z)
-    ro, Jo = np.asarray(ro, np.float64), np.asarray(Jo, np.float64)
+    ro, Jo = (np.asarray(a, np.float64) for a in other.residual_and_jacobian(z))
     rp, rc = r.reshape(F, -1)[:, :npix], ro.reshape(F, -1)[:, :npix]
-    if details is not None:
-        details["frame_change"] = np.sqrt(np.sum(np.square(rc - rp), axis=1))
-    if not (np.all(np.isfinite(ro)) and np.all(np.isfinite(Jo)) and np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
-        return np.full(p, np.inf), np.full(p, np.nan)
+    frame_change = np.sqrt(np.sum(np.square(rc - rp), axis=1))
+    if not all(np.all(np.isfinite(a)) for a in (ro, Jo, r, J)):
+        return None, None, frame_change
     Jp = J.reshape(F, -1, p)[:, :npix].reshape(-1, p)
     with_fit = np.linalg.lstsq(Jp, -(rc - rp).ravel(), rcond=None)[0]
     with_own = np.linalg.lstsq(Jo, -ro, rcond=None)[0] - np.linalg.lstsq(J, -r, rcond=None)[0]
-    if details is not None:
-        details["shift_fit_jacobian"], details["shift_own_jacobians"] = with_fit, with_own
-    shift = np.where(np.abs(with_own) > np.abs(with_fit), with_own, with_fit)
-    return GCI_SAFETY * np.abs(shift) / abs(ratio ** DX_CHECK_ORDER - 1.0), shift
+    return with_fit, with_own, frame_change
 
 
 # A frame whose pixel residual changes between dx and DX_CHECK_RATIO dx by more than this times the median
