@@ -11,13 +11,16 @@ discretization; the measured error of this configuration is ~11% (discretization
 mapping gives (the start is 27.4 Pa; the loss at 0.6x and 1.4x the truth is 9x and 14x the loss at
 the fit).
 """
+import argparse
 import dataclasses
 import json
+import math
 
 import numpy as np
 import pytest
 
-from jaxfoam.calibrate import (DX_CHECK_RATIO, FRAME_BOUNDARY_SPACINGS, GCI_SAFETY, CalibrationError, FitSettings,
+from jaxfoam.calibrate import (DEFAULT_DX_REFIT, DX_CHECK_RATIO, add_fit_parser, settings_from_args, FRAME_BOUNDARY_SPACINGS, GCI_SAFETY, CalibrationError, CalibrationProblem,
+                               FitSettings,
                                build_problem, calibrate, choose_pixel_level, discretization_error, simulation_frames,
                                correlation_area, default_log_path, fit_transform, make_starts, parse_bounds,
                                parse_duration, parse_fixed, parse_start, silhouette_mismatch)
@@ -65,9 +68,10 @@ def test_fit_recovers_yield_stress_from_finer_synthetic_data(slump):
     assert lo < slo < sy < shi < hi
     assert lo < TRUTH["sigma_y"] < hi
     assert fit["numerical_error"]["sigma_y"] > 0.5 * abs(sy - TRUTH["sigma_y"])
-    check = fit["settings"]["dx_check"]  # the two estimates of the move between grids; the larger is used
-    assert check["jacobian"] == "both"
-    assert check["shift_z"][0] == max(check["shift_z_fit_jacobian"][0], check["shift_z_own_jacobians"][0], key=abs)
+    check = fit["settings"]["dx_check"]  # two estimates and one measurement of the move; the largest is used
+    assert check["jacobian"] == "both" and check["refit"] == 2 and 1 <= check["refit_iterations"] <= 2
+    assert check["shift_z"][0] == max(check["shift_z_fit_jacobian"][0], check["shift_z_own_jacobians"][0],
+                                      check["shift_z_refit"][0], key=abs)
     hist = np.asarray(fit["loss_history"])
     assert len(hist) == fit["iterations"] + 1 and np.all(np.diff(hist) <= 0)
     assert hist[-1] < 0.5 * hist[0]  # the start (27.4 Pa, the centre of the range) is clearly improved on
@@ -180,6 +184,14 @@ def test_cli_option_parsing_and_settings_errors():
         FitSettings(fixed=dict(TRUTH)).validate()
     with pytest.raises(CalibrationError, match="bounds: sigma_y needs finite 0 < lo < hi"):
         FitSettings(bounds={"sigma_y": (10.0, 5.0)}).validate()
+    for bad in (-1, 1.5, True):
+        with pytest.raises(CalibrationError, match="dx_refit must be a whole number of iterations >= 0"):
+            FitSettings(dx_refit=bad).validate()
+    parser = argparse.ArgumentParser()
+    add_fit_parser(parser.add_subparsers())
+    refits = [settings_from_args(parser.parse_args(["fit", "d.h5", "--out", "f.json"] + extra)).dx_refit
+              for extra in ([], ["--dx-refit", "0"], ["--dx-refit", "5"])]
+    assert refits == [DEFAULT_DX_REFIT, 0, 5] and DEFAULT_DX_REFIT == FitSettings().dx_refit == 2
     s = FitSettings(fixed={"m": 0.5}, bounds={"mu": (100.0, 300.0)})
     assert s.fitted == ("mu", "sigma_y", "eta")
     assert s.start_range_of("mu") == (100.0, 300.0)  # the default range (30, 600) clipped to the bounds
@@ -234,12 +246,13 @@ def test_fit_continued_from_its_own_result_stays_there(slump, tmp_path):
     assert fit["iterations"] <= 3 and fit["reason"] != "max_iterations"
 
 
-def test_discretization_check_predicts_the_refit_on_the_finer_grid(slump):
+def test_discretization_check_predicts_the_refit_on_the_finer_grid(slump, monkeypatch):
     """The check's predicted move of the estimate from dx to dx / sqrt(2) (the larger of its two
     first-order estimates) has the sign and, within a factor 1.6, the size of the move of a converged refit
-    on that grid started at the fit's optimum (measured: +6.1% in log sigma_y, predicted +4.1% with the fit
-    grid's Jacobian and +2.9% with each grid's own); the numerical error it reports covers that move, and
-    the move is not negligible (over half the Gauss-Newton interval's half-width)."""
+    on that grid started at the fit's optimum (in the fitted coordinate logit-log(sigma_y): measured +0.036,
+    predicted +0.041 with the fit grid's Jacobian and +0.029 with each grid's own; sigma_y itself moved
+    +6.3%); the numerical error it reports covers that move, and the move is not negligible (over a quarter
+    of the Gauss-Newton interval's width). With dx_refit the check measures that same move itself."""
     path, _, ref = slump
     data = read_silhouettes(path)
     problem = build_problem(data, SETTINGS)
@@ -251,15 +264,63 @@ def test_discretization_check_predicts_the_refit_on_the_finer_grid(slump):
     fine = calibrate(data, dataclasses.replace(SETTINGS, dx=FIT_DX * DX_CHECK_RATIO, initial={"sigma_y": sy},
                                                pixel_level=problem.pixel_level, max_iter=10))
     assert fine.reason != "max_iterations"
-    moved = float(np.log(fine.params["sigma_y"] / sy))
+    moved = float(np.asarray(problem.transform.to_unconstrained(np.array([fine.params["sigma_y"]])))[0] - z[0])
     both = [details["shift_fit_jacobian"][0], details["shift_own_jacobians"][0]]
     assert shift[0] == max(both, key=abs)
     assert moved > 0 and all(b > 0 for b in both), (moved, both)
     assert moved / 1.6 < shift[0] < 1.6 * moved, (moved, both)
     assert error[0] == pytest.approx(GCI_SAFETY * abs(shift[0]) / (1 - DX_CHECK_RATIO), rel=1e-12)
     assert error[0] > abs(moved)
-    lo, hi = ref["interval_statistical"]["sigma_y"]
-    assert abs(moved) > 0.25 * np.log(hi / lo)
+    lo, hi = (float(problem.transform.to_unconstrained(np.array([v]))[0]) for v in ref["interval_statistical"]["sigma_y"])
+    assert abs(moved) > 0.25 * (hi - lo)
+
+    # The measured move (dx_refit): the check's own LM iterations on the finer grid retrace that refit (same
+    # start, grid, tolerances) to round-off; the largest of the three moves sets the error (here the fit
+    # grid's estimate, +0.041 against the measured +0.036, so the error is the one without the refit).
+    # The finer grid's residual and Jacobian at z, computed for the estimates, also start the refit.
+    calls, finer = [], []
+    original = CalibrationProblem.residual_and_jacobian
+
+    def counted(self, x):
+        if self.dx < FIT_DX:
+            finer.append(np.asarray(x).copy())
+        return original(self, x)
+
+    monkeypatch.setattr(CalibrationProblem, "residual_and_jacobian", counted)
+    details = {}
+    error_refit, shift_refit = discretization_error(problem, z, J, r=r, details=details, refit=10,
+                                                    progress=calls.append)
+    assert len(finer) == fine.evaluations and np.array_equal(finer[0], z)  # z once, then the LM's trial points
+    assert details["refit_iterations"] == fine.iterations and details["refit_reason"] == fine.reason
+    assert details["shift_refit"][0] == pytest.approx(moved, rel=1e-8, abs=1e-12)
+    assert len(calls) == fine.iterations + 1 and calls[0].startswith("[dx check refit] iter   0")
+    assert shift_refit[0] == max(both + [details["shift_refit"][0]], key=abs) == shift[0]
+    assert error_refit[0] == error[0]
+    assert details["refit_loss"][1] == pytest.approx(fine.loss, rel=1e-8)
+    assert details["refit_loss"][1] < details["refit_loss"][0]
+    # A measured move larger than both estimates sets the error; a non-finite one makes it infinite.
+    import jaxfoam.calibrate as cal
+    for fake, expect in ((0.5, GCI_SAFETY * 0.5 / (1 - DX_CHECK_RATIO)), (math.nan, math.inf)):
+        monkeypatch.setattr(cal, "refit_move", lambda *a, v=fake, **k: dict(move=np.array([v]), iterations=1,
+                                                                           reason="x", loss=(1.0, 1.0)))
+        e, sh = discretization_error(problem, z, J, r=r, refit=1)
+        assert e[0] == pytest.approx(expect, rel=1e-12) and (sh[0] == 0.5 if fake == 0.5 else np.isnan(sh[0]))
+
+
+def test_fit_with_dx_refit_reports_the_measured_move(slump):
+    """`dx_refit` through the fit: fit.json's dx_check records the refit (its iterations, stop reason,
+    losses and move), the shift used is the largest of the three moves, and the numerical error follows it."""
+    path, _, ref = slump
+    res = calibrate(path, dataclasses.replace(SETTINGS, dx_check=True, dx_refit=1, max_iter=1,
+                                              initial={"sigma_y": ref["params"]["sigma_y"]}))
+    check = res.to_dict()["settings"]["dx_check"]
+    assert check["refit"] == 1 and res.settings["dx_refit"] == 1
+    assert check["refit_iterations"] == 1 and len(check["shift_z_refit"]) == 1
+    assert check["refit_loss"][1] <= check["refit_loss"][0]
+    moves = [check["shift_z_fit_jacobian"][0], check["shift_z_own_jacobians"][0], check["shift_z_refit"][0]]
+    assert check["shift_z"][0] == max(moves, key=abs)
+    assert check["error_z"][0] == pytest.approx(GCI_SAFETY * abs(check["shift_z"][0]) / (1 - DX_CHECK_RATIO))
+    assert res.numerical_error["sigma_y"] > 0
 
 
 def test_correlation_area_of_white_and_smoothed_noise():
