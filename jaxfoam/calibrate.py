@@ -119,13 +119,15 @@ DX_CHECK_ORDER = 1.0
 DX_CHECK_JACOBIAN = "both"
 # The check's measured move (FitSettings.dx_refit): LM iterations on the finer grid from the optimum. The
 # first-order estimates above miss where the residual is not linear over the move: in the recovery study's
-# drop set 0 at 1 cm, 4 such iterations moved mu -18.2% where the estimates said -1.4% and +1.1% (the one
-# refinement move of 24 the check's error missed), and on the default-grid drop set 1 +7.4% against +2.5% and
-# +2.4%; in both the fit had reported mu identifiable, 16-20% off, the truth outside or at the edge of its
-# interval (experiments/results/recovery.md, "Discretization check with a measured move"). 2 iterations, not
-# the study's 4: on that drop set 0 they measured -12.5% of the -13.9% (in the fitted coordinate) at a third of
-# the time (4.6 against 15.1 s); each costs one or two Jacobians on the finer grid (2.8x one at dx in 2D, 4x in
-# 3D), about 5-15% of a 2D fit.
+# drop set 0 at 1 cm, 4 such iterations moved mu -18% where the estimates said -1.4% and +1.1% (the one
+# refinement move of 24 the check's error missed), and the fit had reported mu identifiable, 20% off, the
+# truth outside its interval. The study re-reported with 2 iterations (experiments/results/recovery.md,
+# "Discretization check with a measured move"): goal met in 47/48 parameter-cases of the main table (46
+# with the estimates alone), 35/36 on the default grid (34), 256/264 in the probes (248); each change a
+# miss or a claim of identifiability turned "not identifiable" with the truth inside. 2, not the study's 4:
+# on that drop they reach -12.5% of the -13.9% four reach (in the fitted coordinate) in a third of the
+# time; they added 4-11% to the default grid's 2D fits (4 would have caught one more mu there, at 3.3x the
+# time on the one fit timed both ways).
 DEFAULT_DX_REFIT = 2
 # Safety factor on the extrapolated numerical error: Roache's grid convergence index takes 3 for a
 # two-grid estimate whose order is assumed, 1.25 only when three or more grids measure the order. The
