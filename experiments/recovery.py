@@ -219,7 +219,8 @@ afresh with the new fitter to test the re-report: the squeeze set 1 (the slowest
 digits, in 8.0 min wall with the check (12.1 min recorded under heavier load); the squeeze set 2, whose m
 ended on its bound, the same optimum in 6.7 min, but the cache starts m just inside the bound, not at the
 fit's own coordinate there, and its measured moves differ (mu -0.041 against -0.042 cached, sigma_y +0.134
-against +0.020, in the fitted coordinate): intervals within 30%, the same verdicts. For fits with a
+against +0.020, in the fitted coordinate), and so its intervals (sigma_y [2.4, 143] against [3.3, 107] Pa, eta
+[0.064, 243] against [0.050, 500] Pa s^m; mu's within 4%), with the same verdicts. For fits with a
 parameter on a bound the re-report is that approximate.
 
 **Latest (2026-11-25): every record now ran at the fitter's time step.** Sets 1 and 2 of every scene
