@@ -126,8 +126,8 @@ DX_CHECK_JACOBIAN = "both"
 # with the estimates alone), 35/36 on the default grid (34), 256/264 in the probes (248); each change a
 # miss or a claim of identifiability turned "not identifiable" with the truth inside. 2, not the study's 4:
 # on that drop they reach -12.5% of the -13.9% four reach (in the fitted coordinate) in a third of the
-# time; they added 4-11% to the default grid's 2D fits (4 would have caught one more mu there, at 3.3x the
-# time on the one fit timed both ways).
+# time; they added 4-11% to the default grid's 2D fits (4 would have caught one more mu there, at 2.0-3.0x
+# the time of 2 on its drop set 1 and its slowest fit, the squeeze set 1: 129 against 43 s).
 DEFAULT_DX_REFIT = 2
 # Safety factor on the extrapolated numerical error: Roache's grid convergence index takes 3 for a
 # two-grid estimate whose order is assumed, 1.25 only when three or more grids measure the order. The
