@@ -880,17 +880,19 @@ def with_measured_move(r: dict, measured_z, iterations: int) -> dict:
     return fit
 
 
-def measured_check(r: dict, compute: bool = True) -> dict | None:
+def measured_check(r: dict, compute: bool = True, iterations: int = DEFAULT_DX_REFIT) -> dict | None:
     """The move that the fitter's discretization check now measures (`FitSettings.dx_refit` =
     DEFAULT_DX_REFIT LM iterations on its finer grid, dx * DX_CHECK_RATIO, from the optimum; the fit's
     pixel level, precision, time window and seed) for a finished fit recorded before the check measured it,
     so that the record can be reported as the fitter reports it now (`with_measured_move`). `wall` is the
     time of those iterations alone, what the fitter adds to a fit (the finer grid's first residual and
     Jacobian, which the check computed already, are timed apart as `wall_first`). Uses no truth. Cached in
-    CASES/<case>_<optimizer>_measured.json; None when not cached and `compute` is False."""
+    CASES/<case>_<optimizer>_measured.json (another number of iterations: ..._measured<iterations>.json); None
+    when not cached and `compute` is False."""
     from jaxfoam.calibrate import DX_CHECK_RATIO, build_problem, make_starts, refit_move
 
-    path = CASES / f"{r['case']}_{r['optimizer']}_measured.json"
+    tag = "" if iterations == DEFAULT_DX_REFIT else str(int(iterations))
+    path = CASES / f"{r['case']}_{r['optimizer']}_measured{tag}.json"
     if path.exists() or not compute:
         return json.loads(path.read_text()) if path.exists() else None
     c = case_of(r)
@@ -904,8 +906,8 @@ def measured_check(r: dict, compute: bool = True) -> dict | None:
     t0 = time.perf_counter()
     at_z = tuple(np.asarray(a) for a in other.residual_and_jacobian(z))
     t1 = time.perf_counter()
-    m = refit_move(other, z, DEFAULT_DX_REFIT, at_z=at_z)
-    out = dict(names=list(other.transform.names), refit=DEFAULT_DX_REFIT, move_z=[float(v) for v in m["move"]],
+    m = refit_move(other, z, int(iterations), at_z=at_z)
+    out = dict(names=list(other.transform.names), refit=int(iterations), move_z=[float(v) for v in m["move"]],
                iterations=m["iterations"], reason=m["reason"], loss=list(m["loss"]),
                wall=time.perf_counter() - t1, wall_first=t1 - t0, date=time.strftime("%Y-%m-%d"))
     CASES.mkdir(parents=True, exist_ok=True)
@@ -946,10 +948,15 @@ def _measured_move_section(groups: list[tuple[str, list[dict]]], names) -> str:
             continue
         before = [r["estimates_only"]["evaluation"] for r in recs]
         now = [r["evaluation"] for r in recs]
-        four = [(r, refit_check(r, compute=False)) for r in recs]
-        four = [evaluate(with_measured_move(dict(r, fit=r["estimates_only"]["fit"]),
-                                            np.add(rc["moved_z"], rc["left_on_fit_grid_z"]), REFIT_ITERATIONS),
-                         r["truth"]) for r, rc in four if rc is not None]
+        four = []
+        for r in recs:  # REFIT_ITERATIONS iterations: a measured check of that many, or the refit check's finer grid
+            m4 = measured_check(r, compute=False, iterations=REFIT_ITERATIONS)
+            rc = None if m4 is not None else refit_check(r, compute=False)
+            move = (m4["move_z"] if m4 is not None else
+                    None if rc is None else np.add(rc["moved_z"], rc["left_on_fit_grid_z"]))
+            if move is not None:
+                four.append(evaluate(with_measured_move(dict(r, fit=r["estimates_only"]["fit"]), move,
+                                                        REFIT_ITERATIONS), r["truth"]))
         cell = lambda key: (f"{count(before, key)} -> {count(now, key)}"
                             + (f" ({count(four, key)})" if len(four) == len(recs) else ""))
         extra = [r["fit"]["wall_time"] - r["estimates_only"]["fit"]["wall_time"] for r in recs]
@@ -977,7 +984,8 @@ def _measured_move_section(groups: list[tuple[str, list[dict]]], names) -> str:
             f"statistical interval), its wall time with their time added. Parameter-cases with the truth inside "
             f"the combined interval, with the goal met, and reported identifiable: estimates only -> with the "
             f"measured move (in brackets: with {REFIT_ITERATIONS} iterations, the refit checks' budget, where "
-            f"cached), and the time the iterations added:\n\n"
+            f"cached for every fit of the group: `--measured-check {REFIT_ITERATIONS}`, or the refit checks' finer "
+            f"grid), and the time the {DEFAULT_DX_REFIT} iterations added:\n\n"
             + C.md_table(["group", "fits", "parameter-cases", "inside", "goal met", "identifiable",
                           "time added", "of the fit's wall time"], rows)
             + ("\nThe parameter-cases whose verdict changed:\n\n"
@@ -1632,10 +1640,11 @@ def main(argv=None) -> None:
     ap.add_argument("--only", default=None, help="run only jobs whose scene name contains this text")
     ap.add_argument("--refit-check", action="store_true",
                     help="refit the main table's LM fits on the discretization check's finer grid (cached), then report")
-    ap.add_argument("--measured-check", action="store_true",
+    ap.add_argument("--measured-check", type=int, nargs="?", const=DEFAULT_DX_REFIT, default=None, metavar="N",
                     help="for every finished fit reported before the discretization check measured its move, run "
-                         "those LM iterations on the check's grid (cached) so the report shows it as the fitter "
-                         "reports it now, then report")
+                         f"those LM iterations (alone: the fitter's {DEFAULT_DX_REFIT}; N: another budget, shown "
+                         "beside) on the check's grid (cached) so the report shows it as the fitter reports it now, "
+                         "then report")
     ap.add_argument("--shift-check", action="store_true",
                     help="the discretization check's estimate on half- and quarter-cell shifted grids for the main table's LM fits (cached), then report")
     ap.add_argument("--sets", type=int, default=None,
@@ -1650,11 +1659,11 @@ def main(argv=None) -> None:
                 print(f"== {label} check {r['case']}", flush=True)
                 check(r)
         args.report = True
-    if args.measured_check:
+    if args.measured_check is not None:
         for r in load_records(args.quick):
             if "refit" not in (r["fit"]["settings"].get("dx_check") or {"refit": None}):
-                print(f"== measured check {r['case']} {r['optimizer']}", flush=True)
-                measured_check(r)
+                print(f"== measured check ({args.measured_check}) {r['case']} {r['optimizer']}", flush=True)
+                measured_check(r, iterations=args.measured_check)
         args.report = True
     if not args.report:
         for _, c, k, opt in plan(args.quick, args.sets):
