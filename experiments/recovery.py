@@ -700,20 +700,27 @@ def shift_check(r: dict, compute: bool = True) -> dict | None:
     return out
 
 
+def _record_optimum(r: dict):
+    """(transform, theta (p,), z (p,)) of finished fit r: the fitter's transform for its bounds and fixed
+    parameters, and its optimum in physical and fitted coordinates (a value on a bound taken just inside it,
+    as `make_starts` does)."""
+    from jaxfoam.calibrate import fit_transform, make_starts
+
+    st = r["fit"]["settings"]
+    settings = FitSettings(bounds={n: tuple(b) for n, b in st["bounds"].items()}, fixed=dict(st["fixed"]),
+                           initial={n: r["fit"]["params"][n] for n in r["fit"]["fitted"]}, starts=1)
+    tr = fit_transform(settings)
+    z = np.asarray(make_starts(tr, settings)[0][0], np.float64)
+    return tr, np.asarray(tr.to_physical(z), np.float64), z
+
+
 def _theta_of_move(r: dict, name: str, v: float, base: float = 0.0) -> tuple[float, float]:
     """Physical values (before, after) of parameter `name` of finished fit r when its fitted coordinate
     moves by v from the optimum's (plus `base`): the fitter's transform is logit-log for a bounded positive
     parameter, so a move in it is not a relative change (d z / d log theta = 1 / ((log hi - log lo) t (1 - t)),
     t the parameter's place between its bounds in log)."""
-    from jaxfoam.calibrate import fit_transform
-
-    fit = r["fit"]
-    st = fit["settings"]
-    tr = fit_transform(FitSettings(bounds={n: tuple(b) for n, b in st["bounds"].items()}, fixed=dict(st["fixed"])))
-    theta = np.array([min(max(float(fit["params"][n]), lo + 1e-9 * (hi - lo)), hi - 1e-9 * (hi - lo))
-                      for n, lo, hi in zip(tr.names, tr.lower, tr.upper)])
+    tr, _, z = _record_optimum(r)
     i = list(tr.names).index(name)
-    z = np.asarray(tr.to_unconstrained(theta), np.float64)
     z0, z1 = z.copy(), z.copy()
     z0[i] += base
     z1[i] += base + v
@@ -831,44 +838,27 @@ def with_measured_move(r: dict, measured_z, iterations: int) -> dict:
     from the optimum (fitted coordinates); the numerical error and the combined interval recomputed from it
     and the statistical interval, identifiability judged again. A fit that does not reproduce its data
     keeps its bounds. Uses no truth."""
-    from jaxfoam.calibrate import DX_CHECK_ORDER, DX_CHECK_RATIO, GCI_SAFETY, fit_transform, judge_reported_intervals
+    from types import SimpleNamespace
+
+    from jaxfoam.calibrate import check_error, combine_intervals, judge_reported_intervals, numerical_half_width
 
     fit = json.loads(json.dumps(r["fit"]))
     check = fit["settings"]["dx_check"]
-    st = fit["settings"]
-    tr = fit_transform(FitSettings(bounds={n: tuple(b) for n, b in st["bounds"].items()}, fixed=dict(st["fixed"])))
+    tr, theta, z = _record_optimum(r)
     names = list(tr.names)
     measured = np.asarray(measured_z, np.float64)
-    moves = np.stack([check["shift_z_fit_jacobian"], check["shift_z_own_jacobians"], measured])
-    shift = moves[np.argmax(np.abs(moves), axis=0), np.arange(len(names))]
-    err = GCI_SAFETY * np.abs(shift) / abs(DX_CHECK_RATIO ** DX_CHECK_ORDER - 1.0)
-    theta = np.array([min(max(float(fit["params"][n]), lo + 1e-9 * (hi - lo)), hi - 1e-9 * (hi - lo))
-                      for n, lo, hi in zip(names, tr.lower, tr.upper)])
-    z = np.asarray(tr.to_unconstrained(theta), np.float64)
+    err, shift = check_error([check["shift_z_fit_jacobian"], check["shift_z_own_jacobians"], measured])
 
-    def coord(i, v):
+    def coord(i, v):  # a physical interval end in fitted coordinates (an end on a bound just inside it)
         w = theta.copy()
         w[i] = min(max(float(v), tr.lower[i] + 1e-12 * (tr.upper[i] - tr.lower[i])),
                    tr.upper[i] - 1e-12 * (tr.upper[i] - tr.lower[i]))
         return float(np.asarray(tr.to_unconstrained(w))[i])
 
-    interval = {}
-    for i, n in enumerate(names):
-        lo, hi = (float(v) for v in fit["interval_statistical"][n])
-        half = math.hypot(0.5 * (coord(i, hi) - coord(i, lo)), err[i])
-        ends = []
-        for sgn in (-1.0, 1.0):
-            zz = z.copy()
-            zz[i] += sgn * half
-            ends.append(float(np.asarray(tr.to_physical(zz))[i]))
-        interval[n] = sorted(ends)
-    for i, n in enumerate(names):
-        ends = []
-        for sgn in (-1.0, 1.0):
-            zz = z.copy()
-            zz[i] += sgn * err[i]
-            ends.append(float(np.asarray(tr.to_physical(zz))[i]))
-        fit["numerical_error"][n] = 0.5 * abs(ends[1] - ends[0])
+    stat_z = np.array([[coord(i, v) for v in fit["interval_statistical"][n]] for i, n in enumerate(names)])
+    both = combine_intervals(SimpleNamespace(z=z, interval_z=stat_z), err, tr)
+    interval = {n: [float(v) for v in both[i]] for i, n in enumerate(names)}
+    fit["numerical_error"].update(zip(names, (float(v) for v in numerical_half_width(tr, z, err))))
     check.update(refit=int(iterations), shift_z_refit=[float(v) for v in measured], shift_z=[float(v) for v in shift],
                  error_z=[float(v) for v in err])
     if fit.get("reproduces_data", True):

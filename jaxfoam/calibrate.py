@@ -978,9 +978,25 @@ def discretization_error(problem: CalibrationProblem, z, J, ratio: float = DX_CH
         if not np.all(np.isfinite(measured["move"])):
             return np.full(p, np.inf), np.full(p, np.nan)
         moves.append(measured["move"])
-    moves = np.stack(moves)
-    shift = moves[np.argmax(np.abs(moves), axis=0), np.arange(p)]
+    return check_error(moves, ratio)
+
+
+def check_error(moves, ratio: float = DX_CHECK_RATIO):
+    """The discretization check's (error_z (p,), shift_z (p,)) from its moves between dx and ratio dx (k, p),
+    fitted coordinates: per parameter the largest move (with its sign), extrapolated to the continuum at
+    order DX_CHECK_ORDER and times GCI_SAFETY."""
+    moves = np.asarray(moves, np.float64)
+    shift = moves[np.argmax(np.abs(moves), axis=0), np.arange(moves.shape[1])]
     return GCI_SAFETY * np.abs(shift) / abs(ratio ** DX_CHECK_ORDER - 1.0), shift
+
+
+def numerical_half_width(transform: fitting.ParameterTransform, z, error_z) -> np.ndarray:
+    """The numerical error error_z (half-widths in fitted coordinates around z) as half-widths in physical
+    units, (p,): half the distance between theta(z - error_z) and theta(z + error_z) (the maps are not linear)."""
+    z, e = np.asarray(z, np.float64), np.asarray(error_z, np.float64)
+    up = np.asarray(transform.to_physical(jnp.asarray(z + e)))
+    down = np.asarray(transform.to_physical(jnp.asarray(z - e)))
+    return 0.5 * np.abs(up - down)
 
 
 def refit_move(other: CalibrationProblem, z, iterations: int, at_z=None,
@@ -1296,12 +1312,9 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
             change = details.get("frame_change")
             both = combine_intervals(unc, err_z, tr)
             half_stat = 0.5 * (unc.interval_z[:, 1] - unc.interval_z[:, 0])
-            zb = np.asarray(z_best, np.float64)
-            up = np.asarray(tr.to_physical(jnp.asarray(zb + err_z)))
-            down = np.asarray(tr.to_physical(jnp.asarray(zb - err_z)))
+            half_num = numerical_half_width(tr, z_best, err_z)
             for i, n in enumerate(names):
-                # the numerical error as a half-width in physical units (the maps are not linear)
-                numerical[n] = float(0.5 * abs(up[i] - down[i]))
+                numerical[n] = float(half_num[i])
                 interval[n] = tuple(float(v) for v in both[i])
                 if err_z[i] > half_stat[i]:
                     notes.append(f"{n}: the numerical error of the dx = {problem.dx:.3g} m grid (about "

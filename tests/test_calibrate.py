@@ -19,11 +19,11 @@ import math
 import numpy as np
 import pytest
 
-from jaxfoam.calibrate import (DEFAULT_DX_REFIT, DX_CHECK_RATIO, add_fit_parser, settings_from_args, FRAME_BOUNDARY_SPACINGS, GCI_SAFETY, CalibrationError, CalibrationProblem,
-                               FitSettings,
-                               build_problem, calibrate, choose_pixel_level, discretization_error, simulation_frames,
+from jaxfoam.calibrate import (DEFAULT_DX_REFIT, DX_CHECK_RATIO, FRAME_BOUNDARY_SPACINGS, GCI_SAFETY, CalibrationError,
+                               CalibrationProblem, FitSettings, add_fit_parser, settings_from_args, build_problem, calibrate, choose_pixel_level, discretization_error, simulation_frames,
                                correlation_area, default_log_path, fit_transform, make_starts, parse_bounds,
                                parse_duration, parse_fixed, parse_start, silhouette_mismatch)
+import jaxfoam.calibrate as calibrate_module
 from jaxfoam.cli import main
 from jaxfoam.io import read_silhouettes
 from jaxfoam.synth import synthesize
@@ -299,9 +299,8 @@ def test_discretization_check_predicts_the_refit_on_the_finer_grid(slump, monkey
     assert details["refit_loss"][1] == pytest.approx(fine.loss, rel=1e-8)
     assert details["refit_loss"][1] < details["refit_loss"][0]
     # A measured move larger than both estimates sets the error; a non-finite one makes it infinite.
-    import jaxfoam.calibrate as cal
     for fake, expect in ((0.5, GCI_SAFETY * 0.5 / (1 - DX_CHECK_RATIO)), (math.nan, math.inf)):
-        monkeypatch.setattr(cal, "refit_move", lambda *a, v=fake, **k: dict(move=np.array([v]), iterations=1,
+        monkeypatch.setattr(calibrate_module, "refit_move", lambda *a, v=fake, **k: dict(move=np.array([v]), iterations=1,
                                                                            reason="x", loss=(1.0, 1.0)))
         e, sh = discretization_error(problem, z, J, r=r, refit=1)
         assert e[0] == pytest.approx(expect, rel=1e-12) and (sh[0] == 0.5 if fake == 0.5 else np.isnan(sh[0]))
