@@ -117,18 +117,19 @@ DX_CHECK_ORDER = 1.0
 # check's error, covered 23; on the slump of tests/test_calibrate.py a converged refit moved sigma_y
 # +6.3%, predicted +7.2% (fit grid) and +5.1% (own).
 DX_CHECK_JACOBIAN = "both"
-# The check's measured move (FitSettings.dx_refit): LM iterations on the finer grid from the optimum. The
-# first-order estimates above miss where the residual is not linear over the move: in the recovery study's
-# drop set 0 at 1 cm, 4 such iterations moved mu -18% where the estimates said -1.4% and +1.1% (the one
-# refinement move of 24 the check's error missed), and the fit had reported mu identifiable, 20% off, the
-# truth outside its interval. The study re-reported with 2 iterations (experiments/results/recovery.md,
-# "Discretization check with a measured move"): goal met in 47/48 parameter-cases of the main table (46
-# with the estimates alone), 35/36 on the default grid (34), 256/264 in the probes (248); each change a
-# miss or a claim of identifiability turned "not identifiable" with the truth inside. 2, not the study's 4:
-# on that drop they reach -12.5% of the -13.9% four reach (in the fitted coordinate) in a third of the
-# time; they added 4-11% to the default grid's 2D fits (4 would have caught one more mu there, at 2.0-3.0x
-# the time of 2 on its drop set 1 and its slowest fit, the squeeze set 1: 129 against 43 s).
-DEFAULT_DX_REFIT = 2
+# The check's measured move (FitSettings.dx_refit): LM iterations on the finer grid from the optimum, per
+# dimension. The first-order estimates above miss where the residual is not linear over the move: in the
+# recovery study's drop set 0 at 1 cm, 4 such iterations moved mu -18% where the estimates said -1.4% and
+# +1.1% (the one refinement move of 24 the check's error missed), and the fit had reported mu identifiable,
+# 20% off, the truth outside its interval. The iterations stop earlier when LM converges (FTOL, XTOL). The
+# study re-reported every record with 2 and with 4 (experiments/results/recovery.md, "Discretization check
+# with a measured move"). 2D: 4, because 2 (the default until 2026-11-25, later) left moves still growing:
+# the default grid's drop set 1 then reported mu identifiable, 16% off (4: not identifiable, the truth
+# inside); 4 took 17-118 s there (2: 9-62 s), the slowest fit (squeeze set 1) 12.1 -> 14.1 min. 3D: 2, because
+# each iteration's Jacobian at dx / sqrt(2) costs about 4x one at dx (2.8x in 2D): 4 took 166-442 s on the
+# study's 3D fits (2: 68-147 s), up to 1.8x the fit itself, and changed none of their intervals by more
+# than 12%.
+DEFAULT_DX_REFIT = {2: 4, 3: 2}
 # Safety factor on the extrapolated numerical error: Roache's grid convergence index takes 3 for a
 # two-grid estimate whose order is assumed, 1.25 only when three or more grids measure the order. The
 # check uses two grids and an assumed order, so 3. (Until 2026-11-23 this was 1.25: in the recovery
@@ -211,7 +212,7 @@ class FitSettings:
       dx_check: estimate the numerical (discretization) error of the estimate from the residual and
         Jacobian on a grid of spacing DX_CHECK_RATIO dx and widen the intervals by it (see
         `discretization_error`).
-      dx_refit: Levenberg-Marquardt iterations (>= 0, default DEFAULT_DX_REFIT = 2) that the discretization
+      dx_refit: Levenberg-Marquardt iterations (>= 0; None: DEFAULT_DX_REFIT, 4 in 2D, 2 in 3D) that the discretization
         check also runs on its finer grid from the optimum; the move they measure enters the check beside its
         two first-order estimates (the largest counts). 0: the estimates only. Ignored without dx_check. Costs
         one or two Jacobians on the finer grid per iteration.
@@ -249,7 +250,7 @@ class FitSettings:
     distance_weight: float = 1.0
     chamfer_weight: float = 1.0
     dx_check: bool = True
-    dx_refit: int = DEFAULT_DX_REFIT
+    dx_refit: int | None = None
     resample: object = FIT_RESAMPLE
     fracture: object = FIT_FRACTURE
 
@@ -265,7 +266,8 @@ class FitSettings:
             raise CalibrationError(f"dx must be a positive grid spacing in m, got {self.dx!r}")
         if self.ppc is not None and int(self.ppc) < 1:
             raise CalibrationError(f"ppc must be >= 1, got {self.ppc!r}")
-        if isinstance(self.dx_refit, bool) or int(self.dx_refit) != self.dx_refit or self.dx_refit < 0:
+        if self.dx_refit is not None and (isinstance(self.dx_refit, bool) or int(self.dx_refit) != self.dx_refit
+                                          or self.dx_refit < 0):
             raise CalibrationError(f"dx_refit must be a whole number of iterations >= 0, got {self.dx_refit!r}")
         for name, value in self.fixed.items():
             if name not in FIT_FIELDS + KNOWN_INPUTS:
@@ -1296,6 +1298,7 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
     p = len(names)
     numerical = {n: 0.0 for n in names}
     dx_check = None
+    dx_refit = DEFAULT_DX_REFIT[problem.scene.dim] if settings.dx_refit is None else int(settings.dx_refit)
     if unc is not None:
         stat = {n: tuple(float(v) for v in unc.interval[i]) for i, n in enumerate(names)}
         interval = dict(stat)
@@ -1305,9 +1308,9 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
         notes = list(unc.messages)
         if settings.dx_check:
             say(f"discretization check: the residual and Jacobian at the optimum with dx = {problem.dx * DX_CHECK_RATIO:.4g} m"
-                + (f", then up to {settings.dx_refit} LM iterations there" if settings.dx_refit else ""))
+                + (f", then up to {dx_refit} LM iterations there" if dx_refit else ""))
             details = {}
-            err_z, shift_z = discretization_error(problem, z_best, J, details=details, r=r, refit=settings.dx_refit,
+            err_z, shift_z = discretization_error(problem, z_best, J, details=details, r=r, refit=dx_refit,
                                                   progress=say)
             change = details.get("frame_change")
             both = combine_intervals(unc, err_z, tr)
@@ -1325,7 +1328,7 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
                             shift_z_fit_jacobian=[float(v) for v in details.get("shift_fit_jacobian", [math.nan] * p)],
                             shift_z_own_jacobians=[float(v) for v in details.get("shift_own_jacobians", [math.nan] * p)],
                             shift_z=[float(v) for v in shift_z], error_z=[float(v) for v in err_z],
-                            refit=int(settings.dx_refit),
+                            refit=dx_refit,
                             shift_z_refit=([float(v) for v in details["shift_refit"]] if "shift_refit" in details
                                            else None),
                             refit_iterations=details.get("refit_iterations"), refit_reason=details.get("refit_reason"),
@@ -1363,6 +1366,8 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
                                 f"iteration) and a new or no budget.",)
     settings_out = dict(settings.to_dict(), dx=problem.dx, ppc=FIT_PPC[problem.scene.dim]
                         if settings.ppc is None else int(settings.ppc),
+                        dx_refit=DEFAULT_DX_REFIT[problem.scene.dim] if settings.dx_refit is None
+                        else int(settings.dx_refit),
                         pixel_level=problem.pixel_level, pixel_size_fit=problem.cfg.pixel_size,
                         substeps_per_frame=sim.substeps, dt=sim.dt, fitted=list(names),
                         transforms=dict(zip(names, tr.kinds)), log=None if log is None else os.fspath(log),
@@ -1694,10 +1699,11 @@ def add_fit_parser(subparsers) -> argparse.ArgumentParser:
     ap.add_argument("--resume", action="store_true", help="continue the fit recorded in the fit log")
     ap.add_argument("--no-dx-check", action="store_true",
                     help="skip the discretization check (intervals then hold the statistical part only)")
-    ap.add_argument("--dx-refit", type=int, default=DEFAULT_DX_REFIT, metavar="N",
+    ap.add_argument("--dx-refit", type=int, default=None, metavar="N",
                     help=f"LM iterations the discretization check runs on its finer grid from the optimum; the move "
-                         f"they measure counts beside its first-order estimates (default {DEFAULT_DX_REFIT}; 0: the "
-                         f"estimates only; each iteration costs one or two Jacobians on that grid)")
+                         f"they measure counts beside its first-order estimates (default {DEFAULT_DX_REFIT[2]} in 2D, "
+                         f"{DEFAULT_DX_REFIT[3]} in 3D; 0: the estimates only; each iteration costs one or two "
+                         f"Jacobians on that grid)")
     ap.add_argument("--resample", nargs="?", const="", default=None, metavar="FIELD=VALUE,...",
                     help="particle resampling in every rollout of the fit (default off); alone it uses the "
                          "ResampleConfig defaults (every=20 substeps, target ppc = the fit's ppc, ...), or "

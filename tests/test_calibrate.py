@@ -69,7 +69,8 @@ def test_fit_recovers_yield_stress_from_finer_synthetic_data(slump):
     assert lo < TRUTH["sigma_y"] < hi
     assert fit["numerical_error"]["sigma_y"] > 0.5 * abs(sy - TRUTH["sigma_y"])
     check = fit["settings"]["dx_check"]  # two estimates and one measurement of the move; the largest is used
-    assert check["jacobian"] == "both" and check["refit"] == 2 and 1 <= check["refit_iterations"] <= 2
+    assert check["jacobian"] == "both" and check["refit"] == DEFAULT_DX_REFIT[2] == 4 == fit["settings"]["dx_refit"]
+    assert 1 <= check["refit_iterations"] <= 4
     assert check["shift_z"][0] == max(check["shift_z_fit_jacobian"][0], check["shift_z_own_jacobians"][0],
                                       check["shift_z_refit"][0], key=abs)
     hist = np.asarray(fit["loss_history"])
@@ -191,7 +192,7 @@ def test_cli_option_parsing_and_settings_errors():
     add_fit_parser(parser.add_subparsers())
     refits = [settings_from_args(parser.parse_args(["fit", "d.h5", "--out", "f.json"] + extra)).dx_refit
               for extra in ([], ["--dx-refit", "0"], ["--dx-refit", "5"])]
-    assert refits == [DEFAULT_DX_REFIT, 0, 5] and DEFAULT_DX_REFIT == FitSettings().dx_refit == 2
+    assert refits == [None, 0, 5] and FitSettings().dx_refit is None and DEFAULT_DX_REFIT == {2: 4, 3: 2}
     s = FitSettings(fixed={"m": 0.5}, bounds={"mu": (100.0, 300.0)})
     assert s.fitted == ("mu", "sigma_y", "eta")
     assert s.start_range_of("mu") == (100.0, 300.0)  # the default range (30, 600) clipped to the bounds
