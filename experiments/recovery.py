@@ -656,6 +656,8 @@ def refit_check(r: dict, compute: bool = True) -> dict | None:
     set against the check's predicted move (both of its estimates) and its numerical error, in fitted
     coordinates. Uses no truth: it tests the check itself. Cached in CASES/<case>_refit.json; None when not
     cached and `compute` is False."""
+    if r["optimizer"] != "lm":  # the cache is keyed by case: it holds the LM fit's refit
+        raise ValueError(f"refit_check: {r['case']} is an {r['optimizer']} fit; the refit check is of LM fits")
     path, cached = _cached_check(r, "refit")
     if cached is not None or not compute:
         return cached
