@@ -135,23 +135,23 @@ SLIP = [SceneCase("drop_2d_frictionless", 0.01, 0.4, 12)]
 CONTACT = [SceneCase("drop_2d_particle_contact", 0.01, 0.4, 12)]
 
 
+def _domain(name: str) -> dict:
+    """Study scene `name`'s domain ({"min": [...], "max": [...]}, m)."""
+    return json.loads((SCENES / f"{name}.json").read_text())["domain"]
+
+
 def default_fit_dx(name: str) -> float:
     """The fitter's default dx (m) for a study scene: its largest domain extent / FIT_CELLS[dim]."""
     from jaxfoam.calibrate import FIT_CELLS
 
-    dom = json.loads((SCENES / f"{name}.json").read_text())["domain"]
+    dom = _domain(name)
     extent = max(hi - lo for lo, hi in zip(dom["min"], dom["max"]))
     return extent / FIT_CELLS[len(dom["min"])]
 
 
-def scene_dim(name: str) -> int:
-    """The dimension (2 or 3) of study scene `name`."""
-    return len(json.loads((SCENES / f"{name}.json").read_text())["domain"]["min"])
-
-
 def fitter_refit(r: dict) -> int:
     """The fitter's default `dx_refit` (LM iterations of the check's measured move) for finished fit r's scene."""
-    return DEFAULT_DX_REFIT[scene_dim(case_of(r).name)]
+    return DEFAULT_DX_REFIT[len(_domain(case_of(r).name)["min"])]
 
 
 # The fitter's default grid (`jaxfoam fit` without --dx: the largest domain extent / FIT_CELLS, 64 cells in

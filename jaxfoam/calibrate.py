@@ -1366,8 +1366,7 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
                                 f"iteration) and a new or no budget.",)
     settings_out = dict(settings.to_dict(), dx=problem.dx, ppc=FIT_PPC[problem.scene.dim]
                         if settings.ppc is None else int(settings.ppc),
-                        dx_refit=DEFAULT_DX_REFIT[problem.scene.dim] if settings.dx_refit is None
-                        else int(settings.dx_refit),
+                        dx_refit=dx_refit,
                         pixel_level=problem.pixel_level, pixel_size_fit=problem.cfg.pixel_size,
                         substeps_per_frame=sim.substeps, dt=sim.dt, fitted=list(names),
                         transforms=dict(zip(names, tr.kinds)), log=None if log is None else os.fspath(log),
