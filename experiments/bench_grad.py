@@ -6,7 +6,8 @@ m 0.5) over FRAMES frames (FRAME_DT s apart, CFL substeps in between), float64:
   forward  the rollout and the per-frame mean foam height (T,), m;
   reverse  value and gradient of the mean over frames of that height w.r.t. (mu, sigma_y, eta, m),
            reverse mode through the per-frame checkpoints (`observable_jacobian(mode="rev")`);
-  jacfwd   the (T, 4) Jacobian of the per-frame heights, forward mode (`mode="fwd"`);
+  jacfwd   the (T, 4) Jacobian of the per-frame heights, forward mode (`mode="fwd"`; its default
+           route, FWD_TANGENTS: the tangents batched by jax.jacfwd in 2D, one jvp per parameter in 3D);
   reverse, no checkpoint (coarse grid only): the same gradient with the plain scan tape, as a
            reference for what checkpointing saves.
 Time: a fresh process per grid spacing compiles all calls, then runs `repeats` rounds with the
@@ -22,9 +23,12 @@ With --one-core every worker process is pinned to one CPU core (sched_setaffinit
 thread: wall and CPU time then agree and measure the work of each call, without the second core that
 some calls use and others do not, and without the thread pool's spin-waiting that CPU time counts.
 
+With --3d the same calls run on the 3D hanging plate (experiments/scenes/hanging_plate_3d.json) at one
+grid spacing (FULL_3D), without the plain-tape reference.
+
 Writes experiments/bench_grad.md (bench_grad_quick.md with --quick, bench_grad_1core.md with
---one-core) next to this script.
-Usage: python experiments/bench_grad.py [--quick] [--one-core]
+--one-core, bench_grad_3d.md with --3d, the suffixes combined) next to this script.
+Usage: python experiments/bench_grad.py [--quick] [--one-core] [--3d]
 """
 from __future__ import annotations
 
@@ -41,7 +45,8 @@ import tempfile
 import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-SCENE = os.path.join(HERE, "scenes", "hanging_plate_2d.json")
+SCENES = {2: os.path.join(HERE, "scenes", "hanging_plate_2d.json"),
+          3: os.path.join(HERE, "scenes", "hanging_plate_3d.json")}
 # Shaving-cream parameters (Pa, Pa, Pa s^m, -): mid-range of the values the fits expect.
 PARAMS = dict(mu=200.0, sigma_y=20.0, eta=5.0, m=0.5)
 FRAME_DT = 0.005  # s between frames (a 200 fps camera)
@@ -52,18 +57,22 @@ GOALS = {"reverse": (4.0, 3.0), "jacfwd": (6.0, None)}
 # so the verdict takes the median over runs, and the table lists each run's ratio.
 FULL = dict(dxs=(0.005, 0.0025), frames=10, repeats=5, runs=3)
 QUICK = dict(dxs=(0.01,), frames=3, repeats=2, runs=1)
+# --3d: the 3D hanging plate at one grid (6,798 particles at dx 1 cm), fewer frames: its jacfwd call takes
+# about 3 s per frame's worth of substeps on this machine.
+FULL_3D = dict(dxs=(0.01,), frames=5, repeats=5, runs=3)
+QUICK_3D = dict(dxs=(0.02,), frames=2, repeats=2, runs=1)
 MODES = ("forward", "reverse", "jacfwd", "reverse_nockpt")
 
 
-def _build(dx, frames):
-    """Simulator, params and the three jitted calls for one grid spacing."""
+def _build(dx, frames, dim=2):
+    """Simulator, params and the three jitted calls for one grid spacing (dim: which scene)."""
     import jax
     import jax.numpy as jnp
 
     import jaxfoam as jf
     from jaxfoam._jacobian import make_observable_jacobian
 
-    scene = jf.load_scene(SCENE)
+    scene = jf.load_scene(SCENES[dim])
     params = jf.Params(kappa=scene.kappa, rho=scene.density, **PARAMS)
     sim = jf.Simulator(scene, [FRAME_DT * (k + 1) for k in range(frames)], params, dx=dx)
 
@@ -103,8 +112,8 @@ def _status_kb(field):
     raise RuntimeError(f"{field} not in /proc/self/status")
 
 
-def worker_time(dx, frames, repeats, modes):
-    sim, params, calls = _build(dx, frames)
+def worker_time(dx, frames, repeats, modes, dim=2):
+    sim, params, calls = _build(dx, frames, dim)
     compile_s = {}
     for m in modes:
         t0 = time.perf_counter()
@@ -123,9 +132,9 @@ def worker_time(dx, frames, repeats, modes):
                 compile_s=compile_s, times=times, cpu=cpu)
 
 
-def worker_memory(dx, frames, mode):
+def worker_memory(dx, frames, mode, dim=2):
     import gc
-    sim, params, calls = _build(dx, frames)
+    sim, params, calls = _build(dx, frames, dim)
     xla = calls[mode].lower(params).compile().memory_analysis()
     xla_mb = (xla.temp_size_in_bytes + xla.argument_size_in_bytes + xla.output_size_in_bytes) / 2**20
     _block(calls[mode](params))  # compile and warm up
@@ -160,9 +169,9 @@ def _run_worker(args, cache_dir, one_core=False):
     return json.loads(res.stdout.strip().splitlines()[-1])
 
 
-def _modes_for(dx, dxs):
-    # The plain-scan tape only on the coarse grid: on the fine grid it needs gigabytes.
-    return MODES if dx == max(dxs) else MODES[:3]
+def _modes_for(dx, dxs, dim=2):
+    # The plain-scan tape only on the coarse 2D grid: on the fine grid and in 3D it needs gigabytes.
+    return MODES if dx == max(dxs) and dim == 2 else MODES[:3]
 
 
 def _ratios(run, m):
@@ -214,49 +223,54 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one coarse grid, 3 frames, 2 repeats (a fast check)")
     ap.add_argument("--one-core", action="store_true", help="pin every worker to one CPU core (writes bench_grad_1core.md)")
+    ap.add_argument("--3d", dest="three_d", action="store_true",
+                    help="the 3D hanging plate at one grid instead (writes bench_grad_3d[_1core].md)")
     ap.add_argument("--worker", nargs="+", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
         kind, rest = args.worker[0], args.worker[1:]
         if kind == "time":
-            out = worker_time(float(rest[0]), int(rest[1]), int(rest[2]), rest[3].split(","))
+            out = worker_time(float(rest[0]), int(rest[1]), int(rest[2]), rest[3].split(","), int(rest[4]))
         else:
-            out = worker_memory(float(rest[0]), int(rest[1]), rest[2])
+            out = worker_memory(float(rest[0]), int(rest[1]), rest[2], int(rest[3]))
         print(json.dumps(out))
         return 0
-    cfg = QUICK if args.quick else FULL
+    dim = 3 if args.three_d else 2
+    cfg = (QUICK_3D if args.quick else FULL_3D) if dim == 3 else (QUICK if args.quick else FULL)
     t_start = time.perf_counter()
     time_runs, mem_rows = [], []
     cache_dir = tempfile.mkdtemp(prefix="bench_grad_cache_")
     for dx in cfg["dxs"]:
-        modes = _modes_for(dx, cfg["dxs"])
+        modes = _modes_for(dx, cfg["dxs"], dim)
         runs = []
         for k in range(cfg["runs"]):
             print(f"dx = {dx} m: timing {', '.join(modes)} (run {k + 1} of {cfg['runs']}) ...", flush=True)
-            runs.append(_run_worker(["time", dx, cfg["frames"], cfg["repeats"], ",".join(modes)], cache_dir,
+            runs.append(_run_worker(["time", dx, cfg["frames"], cfg["repeats"], ",".join(modes), dim], cache_dir,
                                     args.one_core))
         time_runs.append(runs)
         for m in modes:
             print(f"dx = {dx} m: memory of {m} ...", flush=True)
-            mem_rows.append(_run_worker(["memory", dx, cfg["frames"], m], cache_dir, args.one_core))
+            mem_rows.append(_run_worker(["memory", dx, cfg["frames"], m, dim], cache_dir, args.one_core))
     shutil.rmtree(cache_dir, ignore_errors=True)
     table, verdicts = _table(time_runs, mem_rows)
     import jax
     import jaxfoam as jf
-    name = f"bench_grad{'_quick' if args.quick else ''}{'_1core' if args.one_core else ''}.md"
-    flags = (" --quick" if args.quick else "") + (" --one-core" if args.one_core else "")
+    name = f"bench_grad{'_3d' if dim == 3 else ''}{'_quick' if args.quick else ''}{'_1core' if args.one_core else ''}.md"
+    flags = (" --3d" if dim == 3 else "") + (" --quick" if args.quick else "") + (" --one-core" if args.one_core else "")
     cores = (f"every worker process pinned to 1 of {os.cpu_count()} CPU cores" if args.one_core
              else f"{os.cpu_count()} CPU cores")
-    body = (f"# Gradient cost: 2D hanging plate\n\n"
+    body = (f"# Gradient cost: {dim}D hanging plate\n\n"
             f"_{'quick' if args.quick else 'full'} run; regenerate with `python experiments/bench_grad.py"
             f"{flags}` ({time.perf_counter() - t_start:.0f} s). "
             f"{platform.machine()}, {cores} shared with other jobs, JAX {jax.__version__}, "
             f"float64, {time.strftime('%Y-%m-%d')}._\n\n"
-            f"Scene `experiments/scenes/hanging_plate_2d.json`, parameters {PARAMS}, {cfg['frames']} frames "
+            f"Scene `experiments/scenes/hanging_plate_{dim}d.json`, parameters {PARAMS}, {cfg['frames']} frames "
             f"{FRAME_DT} s apart, CFL substeps. forward = rollout + per-frame mean height (T,); reverse = "
             f"value and gradient of its mean w.r.t. (mu, sigma_y, eta, m) through per-frame checkpoints; "
-            f"jacfwd = the (T, 4) Jacobian in forward mode; reverse_nockpt = reverse mode with the plain "
-            f"scan tape (coarse grid only). The forward call is compiled with XLA's default options, as "
+            f"jacfwd = the (T, 4) Jacobian in forward mode, by `observable_jacobian`'s default route "
+            f"({'one jvp rollout per parameter in sequence' if dim == 3 else 'the 4 tangents batched, jax.jacfwd'}: "
+            f"`jaxfoam._jacobian.FWD_TANGENTS`); reverse_nockpt = reverse mode with the plain "
+            f"scan tape (coarse 2D grid only). The forward call is compiled with XLA's default options, as "
             f"`jaxfoam.simulate` runs it; the three gradient calls with the gradient helper's "
             f"(`jaxfoam._jacobian.CPU_COMPILER_OPTIONS`: {jf._jacobian.CPU_COMPILER_OPTIONS}). Times: medians of {cfg['repeats']} interleaved repeats in one "
             f"process, wall clock and process CPU time, in {cfg['runs']} such process(es) per grid (each "

@@ -181,6 +181,35 @@ def test_float32_derivatives_match_float64(sim, rev, mode):
         assert abs(b - a) <= RTOL_FLOAT32 * abs(a), f"{name}: float32 {b} vs float64 {a}"
 
 
+def test_forward_mode_tangent_routes_agree(sim):
+    """Forward mode by one jvp rollout per scalar input (tangents="map", the 3D default) gives the same
+    per-frame Jacobian as jacfwd's batched tangents (tangents="vmap", the 2D default), for scalar
+    inputs and a vector one (gravity, whose columns must land in the right input slots)."""
+    obs = lambda fr: jnp.mean(fr["x"][:, :, 1], axis=1)  # (T,) m
+    wrt = ("mu", "plate0.amplitude", "gravity")
+    a = jf.observable_jacobian(sim, PARAMS, obs, wrt, mode="fwd", tangents="vmap")
+    b = jf.observable_jacobian(sim, PARAMS, obs, wrt, mode="fwd", tangents="map")
+    np.testing.assert_array_equal(np.asarray(a.value), np.asarray(b.value))
+    for name in wrt:
+        ja, jb = np.asarray(a.jacobian[name]), np.asarray(b.jacobian[name])
+        assert ja.shape == jb.shape == (FRAMES,) + np.shape(np.asarray(sim.scene.gravity) if name == "gravity" else 0.0)
+        np.testing.assert_allclose(jb, ja, rtol=1e-12, atol=1e-12 * np.max(np.abs(ja)))
+    assert np.any(np.asarray(a.jacobian["gravity"])[:, 1] != 0.0)  # the vertical column is non-trivial
+
+
+def test_forward_mode_route_defaults_per_dimension(sim):
+    from jaxfoam._jacobian import FWD_TANGENTS, make_observable_jacobian
+    assert make_observable_jacobian(sim, mean_height).tangents == FWD_TANGENTS[2] == "vmap"
+    spec = dict(SCENE, dim=3, gravity=[0.0, -9.81, 0.0],
+                domain={"min": [-0.06, 0.0, -0.03], "max": [0.06, 0.12, 0.03]},
+                plate=dict(SCENE["plate"], center=[0.0, 0.1025, 0.0], half_size=[0.045, 0.005, 0.02],
+                           motion=dict(SCENE["plate"]["motion"], axis=[1.0, 0.0, 0.0])),
+                initial_shape={"type": "box", "min": [-0.02, 0.07, -0.01], "max": [0.02, 0.1, 0.01]})
+    sim3 = jf.Simulator(jf.load_scene(spec), [FRAME_DT], PARAMS, dx=0.01)
+    assert make_observable_jacobian(sim3, mean_height).tangents == FWD_TANGENTS[3] == "map"
+    assert make_observable_jacobian(sim3, mean_height, mode="rev").tangents is None
+
+
 def test_wrt_validation(sim):
     with pytest.raises(ValueError, match="plate1"):
         jf.observable_jacobian(sim, PARAMS, mean_height, ("plate1.amplitude",))
@@ -188,3 +217,5 @@ def test_wrt_validation(sim):
         jf.observable_jacobian(sim, PARAMS, mean_height, ("viscosity",))
     with pytest.raises(ValueError, match="mode"):
         jf.observable_jacobian(sim, PARAMS, mean_height, ("mu",), mode="central")
+    with pytest.raises(ValueError, match="tangents"):
+        jf.observable_jacobian(sim, PARAMS, mean_height, ("mu",), tangents="batched")
