@@ -58,13 +58,22 @@ class SimulationError(FloatingPointError):
     """A rollout turned non-finite (or inverted); the message says at which frame, time and particle."""
 
 
-def wave_speed(params: Params) -> float:
-    """Elastic P-wave speed c = sqrt((kappa + 4/3 mu) / rho), m/s (concrete params only)."""
+def _value(x) -> float:
+    """The float value of a scalar: concrete, or the primal value of a tracer of jax.grad / jax.jvp /
+    jax.jacfwd run outside jit (the time step is picked from it and held fixed, not differentiated).
+    Inside jit (or vmap) there is no value: ValueError."""
     try:
-        kappa, mu, rho = (float(params.kappa), float(params.mu), float(params.rho))
+        return float(jax.lax.stop_gradient(x))
     except (TypeError, jax.errors.ConcretizationTypeError) as exc:
-        raise ValueError("the time step needs concrete kappa, mu, rho: build the Simulator outside "
-                         "jit/grad and differentiate Simulator.rollout") from exc
+        raise ValueError("the time step needs the values of kappa, mu and rho, which jit and vmap do not "
+                         "have: call jaxfoam.simulate / build the Simulator outside jit (jax.grad, jax.jvp "
+                         "and jax.jacfwd of it work), and jit Simulator.rollout instead") from exc
+
+
+def wave_speed(params: Params) -> float:
+    """Elastic P-wave speed c = sqrt((kappa + 4/3 mu) / rho), m/s, from the parameters' values (under
+    jax.grad / jvp outside jit, their primal values)."""
+    kappa, mu, rho = (_value(params.kappa), _value(params.mu), _value(params.rho))
     return math.sqrt((kappa + 4.0 / 3.0 * mu) / rho)
 
 
@@ -232,7 +241,7 @@ class Simulator:
         self.dx = float(dx)
         self.grid: Grid = make_grid(scene, dx)
         self.state0 = state0 if state0 is not None else init_state(
-            scene, dx, ppc, rho=float(params.rho), seed=seed, first_mask=first_mask, capacity=capacity,
+            scene, dx, ppc, rho=_value(params.rho), seed=seed, first_mask=first_mask, capacity=capacity,
             dtype=dtype)
         self.resample, self.fracture, self.colliders = resample, fracture, tuple(colliders)
         self.sort = bool(sort)
@@ -323,15 +332,35 @@ class Trajectory:
     params: Params
 
 
+def _traced(tree) -> bool:
+    return any(isinstance(a, jax.core.Tracer) for a in jax.tree_util.tree_leaves(tree))
+
+
 def simulate(scene: Scene, params: Params, frame_times, dx: float, ppc: int | None = None,
              dtype=jnp.float64, **kwargs) -> Trajectory:
     """Simulate a scene and return the frames at `frame_times` (s). Validates inputs first; raises
     SimulationError if the rollout turns non-finite. Keyword arguments go to `Simulator`.
 
-    For gradients, build a `Simulator` once and differentiate `Simulator.rollout`.
+    Differentiable with respect to `params` by jax.grad, jax.vjp, jax.jvp and jax.jacfwd called
+    outside jit: the frames then come back as JAX arrays. The time step and substeps are chosen from
+    the parameters' values and held fixed (the derivative is that of the discrete map, as for
+    `Simulator.rollout`); the particle masses are rho * vol0 (unless a `state0` is passed), so d/d rho
+    flows through them. Inside jit or vmap it raises ValueError (no parameter values). Each call
+    builds a Simulator (sampling, and a compile the first time for a configuration): for many
+    gradients of one setup, build a Simulator once and differentiate `Simulator.rollout`.
     """
     sim = Simulator(scene, frame_times, params, dx, ppc, dtype=dtype, **kwargs)
-    final, frames, health = sim.rollout(params)
-    sim.check(frames, health)
-    return Trajectory(frames=jax.device_get(frames), times=np.asarray(sim.plan.frame_times), final=final,
+    traced = _traced(params)
+    state0 = sim.state0
+    if traced and "state0" not in kwargs:
+        # The sampled masses are vol0 * rho's value; with rho as a derivative input they carry its tangent.
+        state0 = state0.replace(mass=jnp.asarray(params.rho, state0.vol0.dtype) * state0.vol0)
+    final, frames, health = sim.rollout(params, state0=state0)
+    if traced:
+        value = lambda tree: jax.tree_util.tree_map(jax.lax.stop_gradient, tree)
+        sim.check(value(frames), value(health))
+    else:
+        sim.check(frames, health)
+        frames = jax.device_get(frames)
+    return Trajectory(frames=frames, times=np.asarray(sim.plan.frame_times), final=final,
                       dx=sim.dx, dt=sim.dt, substeps=sim.substeps, scene=scene, params=params)
