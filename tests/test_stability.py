@@ -95,3 +95,19 @@ def test_unstable_step_raises_simulation_error(stretch):
     if int(k.group(1)) > 0:
         pos = re.search(r"at position \[([^\]]+)\] m \(previous frame\)", msg)
         assert pos is not None and np.all(np.isfinite([float(v) for v in pos.group(1).split(",")])), msg
+
+
+def test_unstable_step_raises_under_grad_too():
+    """`jaxfoam.simulate` differentiated (jax.grad outside jit) still checks the rollout on the host: the
+    far-unstable case above raises SimulationError instead of returning a NaN gradient."""
+    import jax
+
+    scene = _scene()
+    stable = Simulator(scene, STABLE_FRAMES, STIFF, DX, max_speed=V_BOUND)
+
+    def height(p):
+        tr = jaxfoam.simulate(scene, p, 25.0 * STABLE_FRAMES, DX, substeps=stable.substeps)
+        return jnp.mean(tr.frames["x"][-1, :, 1])
+
+    with pytest.raises(SimulationError, match="frame"):
+        jax.grad(height)(STIFF)
