@@ -6,6 +6,7 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 # Admissible range of the Herschel-Bulkley exponent m: 0 is singular (infinite thinning); above 5 the
 # flow rule is so stiff in gamma that nothing measured on foams comes near (foams have m ~ 0.3-1).
@@ -36,7 +37,8 @@ class Params:
     def validate(self) -> "Params":
         """Raise ValueError naming the field and its allowed range; return self when valid.
 
-        Only concrete values are checked; traced values (inside jit/grad) pass through.
+        Concrete values are checked, and so are the primal values of tracers that have them (jax.grad,
+        jax.jvp, jax.jacfwd outside jit); abstract values inside jit or vmap pass through.
         """
         rules = {
             "mu": ("> 0 Pa", lambda v: v > 0),
@@ -49,7 +51,10 @@ class Params:
         for name, (rng, ok) in rules.items():
             value = getattr(self, name)
             if isinstance(value, jax.core.Tracer):
-                continue
+                try:
+                    value = np.asarray(jax.lax.stop_gradient(value))
+                except (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError, TypeError):
+                    continue
             try:
                 flat = [float(x) for x in jnp.ravel(jnp.asarray(value))]
             except TypeError as exc:

@@ -59,6 +59,24 @@ def test_good_params_and_edges_are_accepted():
         Params(**{**GOOD, "eta": "five"}).validate()
 
 
+def test_params_are_checked_under_grad_and_pass_through_jit():
+    """Under jax.grad (outside jit) the parameters still have values, and a bad one is named before any
+    simulation work, as for concrete input; inside jit there are no values, and validation lets them pass."""
+    import jax
+
+    def twice_mu(p):
+        p.validate()
+        return 2.0 * p.mu
+
+    assert float(jax.grad(twice_mu)(Params(**GOOD)).mu) == 2.0
+    with pytest.raises(ValueError, match=r"Params\.m must be in \(0, 5\], got 7"):
+        jax.grad(twice_mu)(Params(**{**GOOD, "m": 7.0}))
+    with pytest.raises(ValueError, match=r"Params\.mu"):
+        jax.grad(lambda p: simulate(load_scene(SCENE), p, [0.01], dx=0.02).frames["x"].sum())(
+            Params(**{**GOOD, "mu": -1.0}))
+    assert float(jax.jit(twice_mu)(Params(**{**GOOD, "m": 7.0}))) == 600.0
+
+
 # ------------------------------------------------------------------------------------------------
 # Scene descriptions
 # ------------------------------------------------------------------------------------------------
