@@ -638,10 +638,13 @@ def _residual_and_jacobian(z, static, base, state0, scene, frame_times, frame_dt
 
     Each column is `jax.jvp` along one basis vector, run in sequence by `lax.map` (one compiled
     rollout body). Not `jax.jacfwd`: it vmaps the tangents, which ran 42x slower than the forward
-    rollout on XLA:CPU (2,813 particles, 4 tangents) where one jvp (along sigma_y) cost about one
-    forward rollout: p jvps were ~10x cheaper. Nor `jax.linearize` once with the linear map applied
-    per column: it stores every substep's residuals, and ran 2.4x slower (drop scene, 179 particles,
-    3,310 substeps: 2.27 against 0.95 s wall, one thread).
+    rollout on XLA:CPU in an early version (2,813 particles, 4 tangents) where one jvp (along sigma_y)
+    cost about one forward rollout. Re-measured on 2026-11-25 (default-grid drop fit, 794 particles,
+    3,530 substeps, 2 cores, the whole residual and Jacobian as multiples of the residual's wall
+    time): these columns in two threads (`CalibrationProblem.residual_and_jacobian`) 4.0x, in one
+    thread 7.5x, `jax.jacfwd` 6.0x. Nor `jax.linearize` once with the linear map applied per column:
+    it stores every substep's residuals, and ran 2.4x slower (drop scene, 179 particles, 3,310
+    substeps: 2.27 against 0.95 s wall, one thread).
     """
 
     def fn(zz):
