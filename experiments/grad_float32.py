@@ -43,12 +43,6 @@ FLOOR = GH.FLOOR                 # m per unit coordinate: derivatives below this
 DIM = 2
 
 
-def params_of(z, scene):
-    """Params from z = (ln mu, ln sigma_y, ln eta, m), in z's dtype."""
-    return jaxfoam.Params(mu=jnp.exp(z[0]), kappa=jnp.asarray(scene.kappa, z.dtype), sigma_y=jnp.exp(z[1]),
-                          eta=jnp.exp(z[2]), m=z[3], rho=jnp.asarray(scene.density, z.dtype))
-
-
 def _cast_state(state, dtype):
     return jax.tree_util.tree_map(lambda a: a.astype(dtype) if jnp.issubdtype(a.dtype, jnp.floating) else a, state)
 
@@ -73,7 +67,7 @@ def study(name: str, quick: bool):
         sim, s0, scene = sims[prec], state0[prec], (scene64 if prec == "float64" else scene32)
 
         def heights(z):
-            _, fr, _ = sim.rollout(params_of(z, scene), state0=s0)
+            _, fr, _ = sim.rollout(GH.params_of(z, scene), state0=s0)
             w = fr["active"].astype(fr["x"].dtype)
             return jnp.sum(fr["x"][:, :, 1] * w, axis=1) / jnp.sum(w, axis=1)
         return heights
