@@ -12,11 +12,11 @@ from __future__ import annotations
 
 import math
 import os
-import warnings
 
 import numpy as np
 
 from ._trajectory import SavedTrajectory, as_saved_trajectory
+from ._video import ffmpeg_subprocess
 
 COLOR_FIELDS = ("gamma_dot", "s")
 # Plastic rates below this fraction of the colour scale's top are drawn grey (elastic or nearly so):
@@ -270,10 +270,7 @@ def render_video(traj, out_mp4, fps: int = 20, color: str = "gamma_dot", width_p
     fig.set_layout_engine("none")  # freeze the layout: every video frame has the same geometry
     plates = style.draw_plates(ax, float(traj.times[0]))
     os.makedirs(os.path.dirname(os.path.abspath(os.fspath(out_mp4))), exist_ok=True)
-    with warnings.catch_warnings():
-        # imageio-ffmpeg starts ffmpeg with subprocess (fork + exec at once), which JAX warns about;
-        # the child runs no Python, so the warning does not apply.
-        warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
+    with ffmpeg_subprocess():
         with imageio.get_writer(os.fspath(out_mp4), fps=fps, codec="libx264", quality=7,
                                 macro_block_size=16) as writer:
             for k in idx:

@@ -25,6 +25,7 @@ import os
 import numpy as np
 
 from ._scene import load_scene
+from ._video import ffmpeg_subprocess
 from .io import Camera, Silhouettes, plate_footprint, validate
 
 BACKGROUNDS = ("median", "first", "none")
@@ -195,6 +196,11 @@ def read_frames(path: str | os.PathLike, fps: float | None = None, every: int = 
     every: keep one frame in `every`.  downsample: average-pool factor.  max_frames: stop after this many
     kept frames. The returned fps is that of the source (kept frame k is source frame k * every).
     """
+    with ffmpeg_subprocess():  # a video file is decoded by an ffmpeg subprocess
+        return _read_frames(path, fps, every, downsample, max_frames)
+
+
+def _read_frames(path, fps, every, downsample, max_frames):
     import imageio.v3 as iio
 
     path = os.fspath(path)

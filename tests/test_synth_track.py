@@ -2,7 +2,9 @@
 silhouette format with their truth, and the tracker recovers a known silhouette sequence from a
 video the test renders itself."""
 import json
+import warnings
 
+import jax
 import numpy as np
 import pytest
 
@@ -212,13 +214,21 @@ def test_track_recovers_a_moving_ellipse_from_mp4(tmp_path):
     pytest.importorskip("imageio_ffmpeg")
     frames, known, cam = _ellipse_video()
     video = tmp_path / "foam.mp4"
-    iio.imwrite(video, frames, fps=10)
+    jax.devices()  # JAX's at-fork warning hook is installed with its backend
+    with warnings.catch_warnings(record=True) as raw:
+        warnings.simplefilter("always")
+        iio.imwrite(video, frames, fps=10)  # plain imageio: ffmpeg's subprocess trips JAX's fork warning
+    assert any("os.fork" in str(w.message) for w in raw)  # so the check below can fail
     scene = tmp_path / "scene.json"
     scene.write_text(json.dumps(DROP))
     out = tmp_path / "tracked.h5"
-    rc = main(["track", str(video), "--out", str(out), "--scene", str(scene), "--pixel-size", "0.002",
-               "--origin", "-0.128", "0.0"])
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        rc = main(["track", str(video), "--out", str(out), "--scene", str(scene), "--pixel-size", "0.002",
+                   "--origin", "-0.128", "0.0"])
     assert rc == 0
+    # Reading the video runs ffmpeg in a subprocess too; the tracker silences JAX's fork warning for it.
+    assert not [str(w.message) for w in seen if "os.fork" in str(w.message)]
     d = read_silhouettes(out)
     assert d.masks.shape == known.shape
     np.testing.assert_allclose(d.times, np.arange(len(known)) / 10.0, atol=1e-9)
