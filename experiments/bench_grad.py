@@ -8,8 +8,9 @@ m 0.5) over FRAMES frames (FRAME_DT s apart, CFL substeps in between), float64:
            reverse mode through the per-frame checkpoints (`observable_jacobian(mode="rev")`);
   jacfwd   the (T, 4) Jacobian of the per-frame heights, forward mode (`mode="fwd"`; its default
            route, FWD_TANGENTS: the tangents batched by jax.jacfwd in 2D, one jvp per parameter in 3D);
-  reverse, no checkpoint (coarse grid only): the same gradient with the plain scan tape, as a
-           reference for what checkpointing saves.
+  reverse, no checkpoint (run on the coarse 2D grid only): the same gradient with the plain scan
+           tape, as a reference for what checkpointing saves; on the other grids it is compiled but
+           not run, and the buffers its program plans (gigabytes on the fine grid) are listed.
 Time: a fresh process per grid spacing compiles all calls, then runs `repeats` rounds with the
 calls interleaved (so machine load hits them alike); its medians of wall-clock and of process CPU
 time give its ratios to the forward run. `runs` such processes run one after another per grid
@@ -149,6 +150,15 @@ def worker_memory(dx, frames, mode, dim=2):
                 maxrss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
 
 
+def worker_plan(dx, frames, mode, dim=2):
+    """The compiled program's planned buffers only (`memory_analysis()`), without running it: for the
+    plain-tape reverse call on grids where running it would hold gigabytes."""
+    sim, params, calls = _build(dx, frames, dim)
+    xla = calls[mode].lower(params).compile().memory_analysis()
+    return dict(dx=dx, mode=mode, plan_only=True, xla_temp_mb=xla.temp_size_in_bytes / 2**20,
+                xla_mb=(xla.temp_size_in_bytes + xla.argument_size_in_bytes + xla.output_size_in_bytes) / 2**20)
+
+
 def _pin_one_core():
     """Pin the calling (child) process to the lowest CPU core it may run on."""
     os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
@@ -170,7 +180,8 @@ def _run_worker(args, cache_dir, one_core=False):
 
 
 def _modes_for(dx, dxs, dim=2):
-    # The plain-scan tape only on the coarse 2D grid: on the fine grid and in 3D it needs gigabytes.
+    # The plain-scan tape runs only on the coarse 2D grid: on the fine grid and in 3D it needs gigabytes
+    # (elsewhere only its compiled program's planned memory is reported, `worker_plan`).
     return MODES if dx == max(dxs) and dim == 2 else MODES[:3]
 
 
@@ -216,6 +227,14 @@ def _table(time_runs, mem_rows):
                              f"(goal <= {mg:g}x: {'met' if hm <= mg else 'missed'} on peak RSS, "
                              f"{'met' if wm <= mg else 'missed'} on working buffers)")
                 verdicts.append(text)
+        for r in mem_rows:
+            if r["dx"] == dx and r.get("plan_only"):
+                wm = r["xla_mb"] / mem["forward"]["xla_mb"]
+                lines.append(f"| {dx:g} | {tr['particles']} | {tr['substeps']} | {r['mode']} (compiled, not run) | "
+                             f"- | - | - | - | - | {r['xla_mb']:.1f} | {wm:.1f} | - | - | - | - |")
+                verdicts.append(f"- dx {dx:g} m, {r['mode']}: not run; its compiled program plans {r['xla_mb']:.0f} MB "
+                                f"of buffers, {r['xla_mb'] / mem['reverse']['xla_mb']:.1f}x the checkpointed "
+                                f"reverse call's {mem['reverse']['xla_mb']:.0f} MB")
     return "\n".join(lines) + "\n", "\n".join(verdicts) + "\n"
 
 
@@ -231,6 +250,8 @@ def main(argv=None):
         kind, rest = args.worker[0], args.worker[1:]
         if kind == "time":
             out = worker_time(float(rest[0]), int(rest[1]), int(rest[2]), rest[3].split(","), int(rest[4]))
+        elif kind == "plan":
+            out = worker_plan(float(rest[0]), int(rest[1]), rest[2], int(rest[3]))
         else:
             out = worker_memory(float(rest[0]), int(rest[1]), rest[2], int(rest[3]))
         print(json.dumps(out))
@@ -251,6 +272,9 @@ def main(argv=None):
         for m in modes:
             print(f"dx = {dx} m: memory of {m} ...", flush=True)
             mem_rows.append(_run_worker(["memory", dx, cfg["frames"], m, dim], cache_dir, args.one_core))
+        if "reverse_nockpt" not in modes:
+            print(f"dx = {dx} m: planned memory of reverse_nockpt (compile only) ...", flush=True)
+            mem_rows.append(_run_worker(["plan", dx, cfg["frames"], "reverse_nockpt", dim], cache_dir, args.one_core))
     shutil.rmtree(cache_dir, ignore_errors=True)
     table, verdicts = _table(time_runs, mem_rows)
     import jax
@@ -270,7 +294,8 @@ def main(argv=None):
             f"jacfwd = the (T, 4) Jacobian in forward mode, by `observable_jacobian`'s default route "
             f"({'one jvp rollout per parameter in sequence' if dim == 3 else 'the 4 tangents batched, jax.jacfwd'}: "
             f"`jaxfoam._jacobian.FWD_TANGENTS`); reverse_nockpt = reverse mode with the plain "
-            f"scan tape (coarse 2D grid only). The forward call is compiled with XLA's default options, as "
+            f"scan tape (run on the coarse 2D grid only; elsewhere compiled, and its planned buffers "
+            f"listed). The forward call is compiled with XLA's default options, as "
             f"`jaxfoam.simulate` runs it; the three gradient calls with the gradient helper's "
             f"(`jaxfoam._jacobian.CPU_COMPILER_OPTIONS`: {jf._jacobian.CPU_COMPILER_OPTIONS}). Times: medians of {cfg['repeats']} interleaved repeats in one "
             f"process, wall clock and process CPU time, in {cfg['runs']} such process(es) per grid (each "
