@@ -13,7 +13,10 @@ NOTEBOOK = Path(__file__).resolve().parents[1] / "experiments" / "notebooks" / "
 CELL_TIMEOUT = 300
 
 
-def test_calibration_notebook_runs_and_recovers_sigma_y():
+def test_calibration_notebook_runs_and_recovers_sigma_y(tmp_path, monkeypatch):
+    # The notebook writes its files to a fresh tempfile.mkdtemp folder: keep it in pytest's tmp_path
+    # (the kernel inherits TMPDIR) so that test runs do not leave folders in the system's temp dir.
+    monkeypatch.setenv("TMPDIR", str(tmp_path))
     nb = nbformat.read(NOTEBOOK, as_version=4)
     nbclient.NotebookClient(nb, timeout=CELL_TIMEOUT, kernel_name="python3",
                             resources={"metadata": {"path": str(NOTEBOOK.parent)}}).execute()
@@ -25,3 +28,5 @@ def test_calibration_notebook_runs_and_recovers_sigma_y():
     images = [out for cell in nb.cells if cell.cell_type == "code" for out in cell.get("outputs", [])
               if "image/png" in out.get("data", {})]
     assert len(images) >= 3  # the masks, the loss curve, the overlay
+    work = [p for p in tmp_path.iterdir() if p.name.startswith("calibrate_nb_")]
+    assert len(work) == 1 and (work[0] / "fit.fitlog.h5").exists()  # the fit's log went where TMPDIR said
