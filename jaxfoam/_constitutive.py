@@ -14,6 +14,7 @@ from jax.ad_checkpoint import checkpoint_name
 import numpy as np
 
 from . import _tensor as T
+from ._fusion import materialize_tangent
 from ._params import Params
 
 SQRT_2_3 = math.sqrt(2.0 / 3.0)
@@ -269,10 +270,19 @@ def _inv_cbrt(x):
 
 
 def _return_map_components(bc, f3, params, dt):
-    """Return map on components: bbar_e (3x3) and f embedded as 3x3 -> (bbar_new, s_new, gamma)."""
+    """Return map on components: bbar_e (3x3) and f embedded as 3x3 -> (bbar_new, s_new, gamma).
+
+    dt: the time step, s. In derivative programs the tangents of the trial state bpre, of the
+    radial-return ratio and of the det-1 factor pass through buffers (`materialize_tangent`; the
+    primal program is untouched): XLA:CPU otherwise computed each output component's tangent in its
+    own kernel, recomputing the whole chain (f, fbar bc fbar^T, the implicit rate derivative) in every
+    one of them: four kernels of ~160 us per substep for the 2D hanging plate's forward-mode Jacobian
+    at dx 2.5 mm (5,440 particles, 4 tangents), ~22-33 us with the buffers. Measured there (one core,
+    3 frames, alternating processes, CPU time): jacfwd 1.08x, reverse mode 1.05x. The ratio and det-1
+    factor alone had given 1.02x (docs/gradients.md)."""
     detf = T.det(f3)
     fbar = T.scale(f3, _inv_cbrt(detf))
-    bpre = T.matmul(T.matmul(fbar, bc), T.transpose(fbar))
+    bpre = materialize_tangent(T.matmul(T.matmul(fbar, bc), T.transpose(fbar)), dt)
     tr3 = T.trace(bpre) / 3.0
     dev_pre = T.add_diag(bpre, -tr3)
     sq = T.frob_sq(dev_pre)
@@ -290,9 +300,9 @@ def _return_map_components(bc, f3, params, dt):
     s_new = jnp.where(yielding, s_plastic, s_pre)
     # 1 when elastic: the unused eq. 16 branch must stay finite (its det could be < 0), else its NaN
     # leaks into reverse-mode gradients through the where below.
-    ratio = jnp.where(yielding, s_new / jnp.where(yielding, s_pre, 1.0), 1.0)
+    ratio = materialize_tangent(jnp.where(yielding, s_new / jnp.where(yielding, s_pre, 1.0), 1.0), dt)
     b_ret = T.add_diag(T.scale(dev_pre, ratio), tr3)
-    b_ret = T.scale(b_ret, _inv_cbrt(T.det(b_ret)))  # renormalize to det 1 (eq. 16)
+    b_ret = T.scale(b_ret, materialize_tangent(_inv_cbrt(T.det(b_ret)), dt))  # renormalize to det 1 (eq. 16)
     bbar_new = T.where(yielding, b_ret, bpre)
     sq_new = T.frob_sq(T.dev(bbar_new))
     pos_new = sq_new > 0

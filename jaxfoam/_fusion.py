@@ -39,7 +39,8 @@ def materialize_tangent(a, dt):
     """Identity on `a` (an array or a tuple of arrays); its tangent (and so, transposed, its
     cotangent) passes through a `lax.cond` on the runtime predicate isfinite(dt), which XLA:CPU
     keeps as a fusion boundary. The primal computation is untouched: only derivative programs get
-    the buffer."""
+    the buffer. dt may be an array (e.g. per-particle time steps): the predicate is that all of it
+    is finite."""
     return a
 
 
@@ -47,5 +48,5 @@ def materialize_tangent(a, dt):
 def _materialize_tangent_jvp(primals, tangents):
     a, dt = primals
     zeros = lambda t: jax.tree_util.tree_map(jnp.zeros_like, t)
-    ta = jax.lax.cond(jnp.isfinite(dt), lambda t: t, zeros, tangents[0])
+    ta = jax.lax.cond(jnp.all(jnp.isfinite(dt)), lambda t: t, zeros, tangents[0])
     return a, ta
