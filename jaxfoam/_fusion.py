@@ -50,3 +50,21 @@ def _materialize_tangent_jvp(primals, tangents):
     zeros = lambda t: jax.tree_util.tree_map(jnp.zeros_like, t)
     ta = jax.lax.cond(jnp.all(jnp.isfinite(dt)), lambda t: t, zeros, tangents[0])
     return a, ta
+
+
+@jax.custom_jvp
+def materialize_linearization(a, dt):
+    """Identity on `a`, like `materialize_tangent`, but in derivative programs the primal value
+    passes through the cond with its tangent: a buffer that the tangent's consumers read instead of
+    recomputing `a` per tangent element. The primal program is untouched."""
+    return a
+
+
+@materialize_linearization.defjvp
+def _materialize_linearization_jvp(primals, tangents):
+    a, dt = primals
+
+    def other(p, t):
+        nan = jax.tree_util.tree_map(lambda x: jnp.full_like(x, jnp.nan), p)
+        return nan, jax.tree_util.tree_map(jnp.zeros_like, t)
+    return jax.lax.cond(jnp.all(jnp.isfinite(dt)), lambda p, t: (p, t), other, a, tangents[0])

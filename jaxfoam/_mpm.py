@@ -25,7 +25,7 @@ import numpy as np
 
 from . import _tensor as T
 from ._constitutive import _kirchhoff, _return_map_components
-from ._fusion import hoist, materialize_tangent
+from ._fusion import hoist, materialize_linearization, materialize_tangent
 from ._params import Params
 from ._scene import Scene
 from ._state import State
@@ -703,8 +703,11 @@ def grid_update(grid_mv, grid_m, scene: Scene, grid: Grid, t, dt, colliders=(), 
     (touch: `floor_touch`'s nodes, for a floor with particle contact)."""
     v = safe_div(grid_mv, grid_m[:, None])
     v = v + jnp.where(grid_m[:, None] > 0, dt * scene.gravity.astype(v.dtype)[None, :], 0.0)
-    # Reverse mode: the colliders' transpose is computed once into a buffer (jaxfoam._fusion).
-    v = materialize_tangent(v, dt)
+    # Derivative programs: v and its tangent become buffers (jaxfoam._fusion), so the colliders'
+    # transpose is computed once, and their tangent kernels read v instead of recomputing it from the
+    # momentum and mass per tangent element (jacfwd 1.02-1.14x, reverse mode 1.02-1.10x in three
+    # alternating one-core runs on the 2D hanging plate at dx 2.5 mm, against the tangent alone).
+    v = materialize_linearization(v, dt)
     return apply_colliders(v, grid.node_positions(v.dtype), scene, t + dt, colliders, grid_m, dt, grid.dx,
                            grid=grid, touch=touch)
 

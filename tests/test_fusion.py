@@ -3,7 +3,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxfoam._fusion import hoist, materialize_tangent
+from jaxfoam._fusion import hoist, materialize_linearization, materialize_tangent
 
 
 def _grid_fn(x, t):
@@ -40,6 +40,29 @@ def test_materialize_tangent_is_the_identity_in_forward_and_reverse_mode():
     np.testing.assert_array_equal(tout, ta)
     _, vjp = jax.vjp(lambda a: materialize_tangent(a, 1e-3), a)
     np.testing.assert_array_equal(vjp(ta)[0], ta)
+
+
+def test_materialize_linearization_is_the_identity_and_passes_the_primal_through_the_cond():
+    a = jnp.asarray(np.random.default_rng(3).random((50, 3)))
+    ta = jnp.asarray(np.random.default_rng(4).random((50, 3)))
+    out, tout = jax.jvp(lambda a: materialize_linearization(a, 1e-3), (a,), (ta,))
+    np.testing.assert_array_equal(out, a)
+    np.testing.assert_array_equal(tout, ta)
+    _, vjp = jax.vjp(lambda a: materialize_linearization(a, 1e-3), a)
+    np.testing.assert_array_equal(vjp(ta)[0], ta)
+    # the primal value comes out of the cond in a jvp program (NaN for a non-finite dt, as a time
+    # step would give), and the tangent is 0 there
+    out, tout = jax.jvp(lambda a: materialize_linearization(a, np.inf), (a,), (ta,))
+    assert np.all(np.isnan(out)) and np.all(np.asarray(tout) == 0.0)
+    # the primal program alone is the identity, whatever dt
+    np.testing.assert_array_equal(materialize_linearization(a, np.inf), a)
+    # kept by XLA in the compiled forward-mode program, absent from the primal one
+    w, dt = jnp.ones((4, 3)), jnp.float64(1e-3)
+
+    def f(w, dt):
+        return jnp.sum(jnp.sin(materialize_linearization(w * 2.0, dt)))
+    assert "conditional(" in jax.jit(jax.jacfwd(f)).lower(w, dt).compile().as_text()
+    assert "conditional(" not in jax.jit(f).lower(w, dt).compile().as_text()
 
 
 def test_the_boundary_survives_xla_in_derivative_programs_only():
