@@ -278,8 +278,9 @@ def _return_map_components(bc, f3, params, dt):
     own kernel, recomputing the whole chain (f, fbar bc fbar^T, the implicit rate derivative) in every
     one of them: four kernels of ~160 us per substep for the 2D hanging plate's forward-mode Jacobian
     at dx 2.5 mm (5,440 particles, 4 tangents), ~22-33 us with the buffers. Measured there (one core,
-    3 frames, alternating processes, CPU time): jacfwd 1.08x, reverse mode 1.05x. The ratio and det-1
-    factor alone had given 1.02x (docs/gradients.md)."""
+    3 frames, alternating processes, CPU time): jacfwd and reverse mode 1.03x (medians of 9 pairs of
+    processes); 3D hanging plate at dx 1 cm 1.08-1.20x. The ratio and det-1 factor alone had given
+    1.02x (docs/gradients.md)."""
     detf = T.det(f3)
     fbar = T.scale(f3, _inv_cbrt(detf))
     bpre = materialize_tangent(T.matmul(T.matmul(fbar, bc), T.transpose(fbar)), dt)

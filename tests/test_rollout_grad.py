@@ -137,8 +137,8 @@ OTHER_DIRECTIONS = {
     "kappa": (1.0, 0.2, 20.0),                          # Pa: step 1e-4 of kappa, change 1%
     "rho": (1.0, 0.008, 0.8),                           # kg/m^3
     "gravity": (np.array([0.0, 1.0]), 1e-3, 0.1),       # m/s^2, along y
-    "state0.v": ("up", 1e-5, 0.1),                      # m/s: every particle's initial velocity along +y
-    "state0.x": ("up", 1e-6, 1e-3),                     # m: every particle shifted along +y
+    "state0.v": (np.array([0.0, 1.0]), 1e-5, 0.1),      # m/s: every particle's initial velocity along +y
+    "state0.x": (np.array([0.0, 1.0]), 1e-6, 1e-3),     # m: every particle shifted along +y
 }
 
 
@@ -160,16 +160,16 @@ def _along(sim, name, h):
         return PARAMS, s0.replace(mass=s0.vol0 * (PARAMS.rho + h)), sc
     if name == "gravity":
         return PARAMS, s0, dataclasses.replace(sc, gravity=jnp.asarray(sc.gravity) + h * direction)
-    field = name[7:]
-    return PARAMS, s0.replace(**{field: getattr(s0, field).at[:, 1].add(h)}), sc
+    field = name[7:]  # every particle moved by h along the direction
+    return PARAMS, s0.replace(**{field: getattr(s0, field) + h * direction[None, :]}), sc
 
 
 def _directional(name, jac, sim):
     """The derivative along OTHER_DIRECTIONS[name] from the Jacobian entry `jac`."""
     direction = OTHER_DIRECTIONS[name][0]
     jac = np.asarray(jac)
-    if name.startswith("state0."):  # every active particle moved along +y
-        return float(np.sum(jac[:, 1] * np.asarray(sim.state0.active)))
+    if name.startswith("state0."):  # every active particle moved along the direction
+        jac = jac * np.asarray(sim.state0.active)[:, None]
     return float(np.sum(jac * direction))
 
 
