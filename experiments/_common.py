@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 import jax
+jax.config.update("jax_enable_x64", True)  # float64 cases and fits; jaxfoam leaves the config alone
 import jax.numpy as jnp
 import numpy as np
 
@@ -95,13 +96,15 @@ class Timer:
 def rollout(state0, params, scene, dt, *, grid, n_frames: int, substeps: int, observe):
     """Explicit MPM rollout with a fixed dt (s): returns (final state, frames pytree (n_frames, ...)).
 
-    A plain scan over frames of `substeps` substeps of `jaxfoam.substep`; dt, params, scene and state0
+    A plain scan over frames of `substeps` substeps of `jaxfoam.step`; dt, params, scene and state0
     are data, so the function can be vmapped over them (one compile for a sweep). observe(state, params)
     -> pytree picked every frame.
     """
+    model = jaxfoam.Model(scene=scene, dt=dt, dt_cfl=dt, grid=grid)
+
     def frame(state, _):
         def sub(s, _):
-            return jaxfoam.substep(s, params, scene, grid, dt), None
+            return jaxfoam.step(model, s, params), None
         state, _ = jax.lax.scan(sub, state, None, length=substeps)
         return state, observe(state, params)
 

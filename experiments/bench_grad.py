@@ -5,9 +5,10 @@ jit-compiled calls at the same parameters (shaving cream: mu 200 Pa, sigma_y 20 
 m 0.5) over FRAMES frames (FRAME_DT s apart, CFL substeps in between), float64:
   forward  the rollout and the per-frame mean foam height (T,), m;
   reverse  value and gradient of the mean over frames of that height w.r.t. (mu, sigma_y, eta, m),
-           reverse mode through the per-frame checkpoints (`observable_jacobian(mode="rev")`);
-  jacfwd   the (T, 4) Jacobian of the per-frame heights, forward mode (`mode="fwd"`; its default
-           route, FWD_TANGENTS: the tangents batched by jax.jacfwd in 2D, one jvp per parameter in 3D);
+           reverse mode through the per-frame checkpoints (`adjoint=HandWritten()`);
+  jacfwd   the (T, 4) Jacobian of the per-frame heights, forward mode: in 2D the tangents batched by
+           jax.jacfwd (`ForwardMode("vmap")`), in 3D one jvp per parameter in sequence
+           (`ForwardMode("map", threads=1)`);
   reverse, no checkpoint (run on the coarse 2D grid only): the same gradient with the plain scan
            tape, as a reference for what checkpointing saves; on the other grids it is compiled but
            not run, and the buffers its program plans (gigabytes on the fine grid) are listed.
@@ -63,6 +64,8 @@ QUICK = dict(dxs=(0.01,), frames=3, repeats=2, runs=1)
 FULL_3D = dict(dxs=(0.01,), frames=5, repeats=5, runs=3)
 QUICK_3D = dict(dxs=(0.02,), frames=2, repeats=2, runs=1)
 MODES = ("forward", "reverse", "jacfwd", "reverse_nockpt")
+JACFWD_ROUTE = {2: "the 4 tangents batched, ForwardMode('vmap')",
+                3: "one jvp rollout per parameter in sequence, ForwardMode('map', threads=1)"}
 
 
 def _build(dx, frames, dim=2):
@@ -70,8 +73,9 @@ def _build(dx, frames, dim=2):
     import jax
     import jax.numpy as jnp
 
+    jax.config.update("jax_enable_x64", True)  # float64 (jaxfoam leaves JAX's configuration alone)
     import jaxfoam as jf
-    from jaxfoam._jacobian import make_observable_jacobian
+    from jaxfoam.adjoint import Autodiff, ForwardMode, HandWritten
 
     scene = jf.load_scene(SCENES[dim])
     params = jf.Params(kappa=scene.kappa, rho=scene.density, **PARAMS)
@@ -85,17 +89,17 @@ def _build(dx, frames, dim=2):
     def loss(fr):
         return jnp.mean(heights(fr))
 
-    # The forward run as users run it: compiled with XLA's default options, as `Simulator.rollout`
-    # and `jaxfoam.simulate` are (the gradient helper's CPU_COMPILER_OPTIONS are tuned for the
-    # differentiated programs; until 2026-11-24 this forward used them too, and ran 1.2-1.4x slower).
+    # The forward run as users run it: compiled with XLA's default options, as `jaxfoam.rollout` and
+    # `jaxfoam.simulate` are (the tuning's compiler options serve the differentiated programs).
     fwd = jax.jit(lambda p, s0, sc: heights(sim.rollout(p, state0=s0, scene=sc)[1]))
     forward = lambda p: fwd(p, sim.state0, sim.scene)
     forward.lower = lambda p: fwd.lower(p, sim.state0, sim.scene)
     calls = {
         "forward": forward,
-        "reverse": make_observable_jacobian(sim, loss, mode="rev"),
-        "jacfwd": make_observable_jacobian(sim, heights, mode="fwd"),
-        "reverse_nockpt": make_observable_jacobian(sim, loss, mode="rev", checkpoint=False),
+        "reverse": jf.make_observable_jacobian(sim, loss, adjoint=HandWritten()),
+        "jacfwd": jf.make_observable_jacobian(
+            sim, heights, adjoint=ForwardMode("vmap") if dim == 2 else ForwardMode("map", threads=1)),
+        "reverse_nockpt": jf.make_observable_jacobian(sim, loss, adjoint=Autodiff()),
     }
     return sim, params, calls
 
@@ -278,7 +282,7 @@ def main(argv=None):
     shutil.rmtree(cache_dir, ignore_errors=True)
     table, verdicts = _table(time_runs, mem_rows)
     import jax
-    import jaxfoam as jf
+    from jaxfoam._xla_cpu import tuning_for
     name = f"bench_grad{'_3d' if dim == 3 else ''}{'_quick' if args.quick else ''}{'_1core' if args.one_core else ''}.md"
     flags = (" --3d" if dim == 3 else "") + (" --quick" if args.quick else "") + (" --one-core" if args.one_core else "")
     cores = (f"every worker process pinned to 1 of {os.cpu_count()} CPU cores" if args.one_core
@@ -291,13 +295,13 @@ def main(argv=None):
             f"Scene `experiments/scenes/hanging_plate_{dim}d.json`, parameters {PARAMS}, {cfg['frames']} frames "
             f"{FRAME_DT} s apart, CFL substeps. forward = rollout + per-frame mean height (T,); reverse = "
             f"value and gradient of its mean w.r.t. (mu, sigma_y, eta, m) through per-frame checkpoints; "
-            f"jacfwd = the (T, 4) Jacobian in forward mode, by `observable_jacobian`'s default route "
-            f"({'one jvp rollout per parameter in sequence' if dim == 3 else 'the 4 tangents batched, jax.jacfwd'}: "
-            f"`jaxfoam._jacobian.FWD_TANGENTS`); reverse_nockpt = reverse mode with the plain "
+            f"jacfwd = the (T, 4) Jacobian in forward mode "
+            f"({JACFWD_ROUTE[dim]}); "
+            f"reverse_nockpt = reverse mode with the plain "
             f"scan tape (run on the coarse 2D grid only; elsewhere compiled, and its planned buffers "
             f"listed). The forward call is compiled with XLA's default options, as "
             f"`jaxfoam.simulate` runs it; the three gradient calls with the gradient helper's "
-            f"(`jaxfoam._jacobian.CPU_COMPILER_OPTIONS`: {jf._jacobian.CPU_COMPILER_OPTIONS}). Times: medians of {cfg['repeats']} interleaved repeats in one "
+            f"(the tuning's compiler options: {dict(tuning_for().compiler_options)}). Times: medians of {cfg['repeats']} interleaved repeats in one "
             f"process, wall clock and process CPU time, in {cfg['runs']} such process(es) per grid (each "
             f"compiles afresh; the ratios and times listed are medians over them, and `per run` lists each "
             f"process's ratio: the machine is shared). Memory, each call in a fresh process: XLA buffers = temp + argument + "

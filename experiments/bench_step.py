@@ -3,8 +3,9 @@
 Cases (the classic mpm88 sizes of shared/perf/anchors.md):
   2D: 8,192 particles, 128^2 cells;  3D: 32,768 particles, 64^3 cells; float32 and float64.
 Each case: compile time of a jitted lax.scan of STEPS substeps, then the median of REPEATS timed runs.
-A timed run is one frame as `jaxfoam.simulate` runs it: particles sorted by grid cell, the substeps,
-the original order restored (sort included in the time); the same without sorting is reported beside it.
+A timed run is one frame of `jaxfoam.rollout` (as `jaxfoam.simulate` runs it): particles sorted by grid
+cell, the substeps, the original order restored (sort included in the time); the same without sorting
+(the tuning's sort_by_cell off) is reported beside it.
 Writes experiments/bench_step.md next to this script. Usage: python experiments/bench_step.py [--quick]
 """
 from __future__ import annotations
@@ -16,11 +17,11 @@ import statistics
 import time
 
 import jax
+jax.config.update("jax_enable_x64", True)  # float64 cases and fits; jaxfoam leaves the config alone
 import jax.numpy as jnp
 import numpy as np
 
 import jaxfoam as jf
-from jaxfoam import from_components, to_components
 
 # Peer figures on the same 2-core machine (shared/perf/anchors.md), particle-steps/s.
 ANCHORS = {"taichi_2d_f32": 5.3e6, "jax_toy_2d_f32": 4.8e6, "jax_toy_2d_f64": 4.0e6,
@@ -46,21 +47,20 @@ def make_case(dim, n, cells, dtype):
     return scene, state, params, grid, dt
 
 
-def make_rollout(scene, grid, dt, steps, sort):
+def _observe_x(state, params):
+    return state.x
+
+
+def make_rollout(scene, grid, dt, steps, sort, dtype):
+    """One frame of `steps` substeps of dt s through `jaxfoam.rollout` (forward only), jit-compiled."""
+    model = jf.Model(scene=scene, dt=dt, dt_cfl=dt, grid=grid, substeps=steps, dtype=jnp.dtype(dtype).name)
+    model = model.replace(tuning=model.tuning.replace(sort_by_cell=sort))
+    times = np.asarray([steps * dt])
+
     @jax.jit
     def rollout(state, params):
-        # As in jaxfoam.simulate: the step runs on the component form of the state
-        # (jaxfoam.to_components), packed into (N, d, d) arrays only at the ends of the scan, and the
-        # particles are sorted by cell for the frame (jaxfoam.sort_by_cell) and put back after it.
-        def body(s, _):
-            return jf.substep(s, params, scene, grid, dt), None
-        s = to_components(state)
-        if sort:
-            s, perm = jf.sort_by_cell(s, grid)
-        s = jax.lax.scan(body, s, None, length=steps)[0]
-        if sort:
-            s = jf.unsort(s, perm)
-        return from_components(s)
+        final, _, _ = jf.rollout(model, state, params, times, observe=_observe_x, adjoint=jf.Autodiff())
+        return final
     return rollout
 
 
@@ -79,8 +79,8 @@ def time_runs(rollout, state, params, repeats):
 
 def run_case(dim, n, cells, dtype, steps, repeats):
     scene, state, params, grid, dt = make_case(dim, n, cells, dtype)
-    out, compile_s, times = time_runs(make_rollout(scene, grid, dt, steps, True), state, params, repeats)
-    _, _, times_unsorted = time_runs(make_rollout(scene, grid, dt, steps, False), state, params, repeats)
+    out, compile_s, times = time_runs(make_rollout(scene, grid, dt, steps, True, dtype), state, params, repeats)
+    _, _, times_unsorted = time_runs(make_rollout(scene, grid, dt, steps, False, dtype), state, params, repeats)
 
     if not bool(jnp.all(jnp.isfinite(out.x))):
         raise RuntimeError(f"benchmark case {dim}D went non-finite")

@@ -115,9 +115,9 @@ def run(spec: dict, spec2: dict, dx: float, duration: float):
     times = np.linspace(duration / FRAMES, duration, FRAMES)
     state0 = _state0(spec2, scene, dx, dtype)
     sim = jaxfoam.Simulator(scene, times, params, dx, dtype=dtype, cfl=CFL, state0=state0)
-    sim.rollout(params, observe=_observe, checkpoint=False)  # compile (excluded from the time)
+    sim.rollout(params, observe=_observe, adjoint=jaxfoam.Autodiff())  # compile (excluded from the time)
     with C.Timer() as tm:
-        _, fr, health = sim.rollout(params, observe=_observe, checkpoint=False)
+        _, fr, health = sim.rollout(params, observe=_observe, adjoint=jaxfoam.Autodiff())
         fr = jax.block_until_ready(fr)
     sim.check(fr, health)
     fr = jax.device_get(fr)

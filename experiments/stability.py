@@ -91,8 +91,10 @@ def timestep_map(mus, ratios, cfls, plastic: bool):
                 dts.append(cfl * DX / (c + v0))
 
     def one(state, p, dt):
+        model = jaxfoam.Model(scene=scene, dt=dt, dt_cfl=dt, grid=grid)
+
         def sub(s, _):
-            return jaxfoam.substep(s, p, scene, grid, dt), None
+            return jaxfoam.step(model, s, p), None
         e0 = total_energy(state, p)
         fin, _ = jax.lax.scan(sub, state, None, length=TS_STEPS)
         e1 = total_energy(fin, p)

@@ -1,7 +1,7 @@
 """A guard against running out of memory mappings when one process compiles many programs.
 
 Every compiled XLA:CPU program keeps its machine code in memory mappings, and JAX keeps each compiled
-program in its caches for the life of the process (`_rollout_jit` and the calibration's jitted
+program in its caches for the life of the process (`jaxfoam.rollout` and the calibration's jitted
 residual and Jacobian are compiled once per grid, scene and fit setting, and reused). A fit problem
 at a new grid spacing added about 720 mappings (2D drop, dx 1 cm: 680 -> 1,448 -> 2,166 -> 2,884 for
 three problems; `jax.clear_caches()` brought it back to 710). Linux caps a process at

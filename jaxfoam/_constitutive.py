@@ -14,7 +14,7 @@ from jax.ad_checkpoint import checkpoint_name
 import numpy as np
 
 from . import _tensor as T
-from ._fusion import materialize_tangent
+from ._xla_cpu import Tuning, tuning_for
 from ._params import Params
 
 SQRT_2_3 = math.sqrt(2.0 / 3.0)
@@ -29,13 +29,6 @@ RETURN_MAP_NEWTON_ITERS = 4
 RETURN_MAP_NEWTON_ITERS_F32 = 3
 # Cap on the Halley correction factor 1 / (1 - t): at most twice the Newton step (t <= 1/2).
 HALLEY_T_MAX = 0.5
-# In float64, every Halley step but the last evaluates its exp and log1p in float32: XLA:CPU's float64
-# log1p costs 10.4 ns per element against 1.9 in float32, and a step's result only needs to be close
-# enough for the next one (cubic convergence: the last, full-precision step takes an iterate good to
-# ~1e-7 to round-off). The solved rate is unchanged to round-off (tests/test_return_map.py: the same
-# worst residual |h|/b = 7.05e-15, rates within 3.7e-15 relative); same-process A/B of the 2D float64
-# bench_step case 1.16-1.20x faster (3D float64 0.99x: there the transfers dominate).
-HALLEY_LOW_PRECISION = True
 
 
 def det(a: jax.Array) -> jax.Array:
@@ -114,7 +107,7 @@ def deviatoric_stress_norm(bbar_e: jax.Array, params: Params) -> jax.Array:
 # The scalar Herschel-Bulkley equation  h(gamma) = eta gamma^m + a gamma - b = 0.
 # ----------------------------------------------------------------------------------------------
 
-def _solve_rate(a, b, eta, m):
+def _solve_rate(a, b, eta, m, low_precision: bool = False):
     """Root of h for b > 0 by Halley's method on z = ln gamma, started from the upper bracket.
 
     g(z) = ln(eta e^{m z} + a e^z) - ln b is convex and increasing: with u = ln(eta/a) + (m - 1) z and
@@ -123,7 +116,7 @@ def _solve_rate(a, b, eta, m):
     (g(z0) in [0, ln 2]). A Halley step is the Newton step g/g' times 1/(1 - t), t = g g''/(2 g'^2),
     with t capped at HALLEY_T_MAX; it may overshoot the root, and from below t < 0 only shortens the
     step. Each step costs one exp and one log1p (in float32 for all but the last step of a float64
-    solve: HALLEY_LOW_PRECISION). Closed forms (eta = 0, m = 1: g linear) are exact after one step
+    solve with `low_precision`: Tuning.halley_low_precision). Closed forms (eta = 0, m = 1: g linear) are exact after one step
     (after the last step when the earlier ones run in float32).
     """
     la = jnp.log(a)
@@ -151,14 +144,14 @@ def _solve_rate(a, b, eta, m):
         t = jnp.minimum(step * (m1 * m1) * w * (1.0 - w) / (2.0 * slope), HALLEY_T_MAX)
         return z - step / (1.0 - t)
 
-    low = HALLEY_LOW_PRECISION and z.dtype == jnp.float64
+    low = low_precision and z.dtype == jnp.float64
     iters = RETURN_MAP_NEWTON_ITERS if z.dtype == jnp.float64 else RETURN_MAP_NEWTON_ITERS_F32
     for k in range(iters):
         z = halley(z, low and k < iters - 1)
     return jnp.exp(z)
 
 
-def hb_rate(a, b, eta, m):
+def hb_rate(a, b, eta, m, tuning: Tuning | None = None):
     """Plastic rate gamma (1/s) solving eta gamma^m + a gamma = b (model.md, the gamma form of eq. 14).
 
     Args (broadcastable arrays):
@@ -166,17 +159,18 @@ def hb_rate(a, b, eta, m):
       b: yield excess s_pre - sqrt(2/3) sigma_y, Pa; gamma = 0 where b <= 0 (elastic).
       eta: consistency, Pa s^m (>= 0).  m: exponent (> 0).
     Derivatives come from the implicit function theorem (see `_rate_jvp`); the iterations are
-    never differentiated.
+    never differentiated. tuning: speed choices (default: the backend's, `jaxfoam._xla_cpu.tuning_for`).
     """
-    return _rate_and_visc(a, b, eta, m)[0]
+    tuning = tuning_for() if tuning is None else tuning
+    return _rate_and_visc(a, b, eta, m, tuning.halley_low_precision)[0]
 
 
-def _rate(a, b, eta, m):
+def _rate(a, b, eta, m, low_precision):
     """`hb_rate`'s value: the solve where b > 0, 0 elsewhere (no derivative rule of its own)."""
     yielding = b > 0
     b_safe = jnp.where(yielding, b, 1.0)
     a_safe = jnp.where(a > 0, a, 1.0)
-    gamma = _solve_rate(a_safe, b_safe, eta, m)
+    gamma = _solve_rate(a_safe, b_safe, eta, m, low_precision)
     return jnp.where(yielding, gamma, 0.0)
 
 
@@ -186,19 +180,19 @@ def _visc_of(gamma, P):
     return jnp.where(gamma >= jnp.finfo(gamma.dtype).tiny, P, jnp.inf)
 
 
-@jax.custom_jvp
-def _rate_and_visc(a, b, eta, m):
+@functools.partial(jax.custom_jvp, nondiff_argnums=(4,))
+def _rate_and_visc(a, b, eta, m, low_precision):
     """(gamma, visc): `hb_rate` and the viscous stress eta gamma^m (Pa; inf where gamma is 0 or
     subnormal), which the return map needs too. One derivative rule gives both, so a derivative
     program evaluates ln(gamma) and gamma^m once, not once for each (two of the return map's ~13
     transcendentals per particle)."""
-    gamma = _rate(a, b, eta, m)
+    gamma = _rate(a, b, eta, m, low_precision)
     g = jnp.where(gamma > 0, gamma, 1.0)
     return gamma, _visc_of(gamma, eta * jnp.exp(m * jnp.log(g)))
 
 
 @_rate_and_visc.defjvp
-def _rate_jvp(primals, tangents):
+def _rate_jvp(low_precision, primals, tangents):
     """Implicit-function derivative of gamma, and with it that of visc = eta gamma^m.
 
     With P = eta gamma^m and Q = a gamma (P + Q = b), differentiating h = 0 gives
@@ -213,9 +207,9 @@ def _rate_jvp(primals, tangents):
     """
     a, b, eta, m = primals
     da, db, deta, dm = tangents
-    # Named: reverse mode's per-substep rematerialization keeps the rate (jaxfoam._simulate.REMAT_SAVED)
+    # Named: reverse mode's per-substep rematerialization keeps the rate (jaxfoam.adjoint.REMAT_SAVED)
     # instead of re-running the solve before the backward pass.
-    gamma = checkpoint_name(_rate(a, b, eta, m), "hb_gamma")
+    gamma = checkpoint_name(_rate(a, b, eta, m, low_precision), "hb_gamma")
     # gamma > 0 too: just past yield with m < 1, gamma = (b/eta)^(1/m) can underflow to 0 (float32,
     # m ~ 0.1), where P ln(gamma) would be 0 * -inf = NaN; the derivative of an underflowed 0 is 0.
     yielding = (b > 0) & (gamma > 0)
@@ -235,7 +229,8 @@ def _rate_jvp(primals, tangents):
     return (gamma, visc), (dgamma, dvisc)
 
 
-def return_map(bbar_e: jax.Array, f: jax.Array, params: Params, dt) -> tuple[jax.Array, jax.Array]:
+def return_map(bbar_e: jax.Array, f: jax.Array, params: Params, dt,
+               tuning: Tuning | None = None) -> tuple[jax.Array, jax.Array]:
     """One plastic step of a material point: elastic predictor, yield test, HB return map (eq. 12-16).
 
     Args:
@@ -244,17 +239,19 @@ def return_map(bbar_e: jax.Array, f: jax.Array, params: Params, dt) -> tuple[jax
          (2D is plane strain: f_zz = 1).
       params: material (mu Pa, sigma_y Pa, eta Pa s^m, m).
       dt: time step, s.
+      tuning: speed choices (default: the backend's, `jaxfoam._xla_cpu.tuning_for`).
     Returns:
       (bbar_e_new (..., 3, 3) with det 1, s_new (...) deviatoric stress magnitude mu ||dev bbar_e_new||, Pa).
     Elastic states (Phi(s_pre) <= 0) come back as the elastic predictor, bit for bit.
     """
-    bbar_new, s_new, _ = _return_map_with_rate(bbar_e, f, params, dt)
+    bbar_new, s_new, _ = _return_map_with_rate(bbar_e, f, params, dt, tuning)
     return bbar_new, s_new
 
 
-def _return_map_with_rate(bbar_e, f, params, dt):
+def _return_map_with_rate(bbar_e, f, params, dt, tuning: Tuning | None = None):
     """Array front end of `_return_map_components`: returns (bbar_new, s_new, gamma)."""
-    bc, s_new, gamma = _return_map_components(T.comps(bbar_e), T.comps(f, pad_to=3), params, dt)
+    tuning = tuning_for() if tuning is None else tuning
+    bc, s_new, gamma = _return_map_components(T.comps(bbar_e), T.comps(f, pad_to=3), params, dt, tuning)
     return T.array(bc, bbar_e[..., 0, 0]), s_new, gamma
 
 
@@ -269,21 +266,15 @@ def _inv_cbrt(x):
     return jnp.exp(jnp.log(x) * (-1.0 / 3.0))
 
 
-def _return_map_components(bc, f3, params, dt):
+def _return_map_components(bc, f3, params, dt, tuning: Tuning):
     """Return map on components: bbar_e (3x3) and f embedded as 3x3 -> (bbar_new, s_new, gamma).
 
-    dt: the time step, s. In derivative programs the tangents of the trial state bpre, of the
-    radial-return ratio and of the det-1 factor pass through buffers (`materialize_tangent`; the
-    primal program is untouched): XLA:CPU otherwise computed each output component's tangent in its
-    own kernel, recomputing the whole chain (f, fbar bc fbar^T, the implicit rate derivative) in every
-    one of them: four kernels of ~160 us per substep for the 2D hanging plate's forward-mode Jacobian
-    at dx 2.5 mm (5,440 particles, 4 tangents), ~22-33 us with the buffers. Measured there (one core,
-    3 frames, alternating processes, CPU time): jacfwd and reverse mode 1.03x (medians of 9 pairs of
-    processes); 3D hanging plate at dx 1 cm 1.08-1.20x. The ratio and det-1 factor alone had given
-    1.02x (docs/gradients.md)."""
+    dt: the time step, s. tuning: in derivative programs the tangents of the trial state bpre, of the
+    radial-return ratio and of the det-1 factor pass through buffers ("return_map"): XLA:CPU otherwise
+    recomputes the whole chain in each output component's tangent kernel."""
     detf = T.det(f3)
     fbar = T.scale(f3, _inv_cbrt(detf))
-    bpre = materialize_tangent(T.matmul(T.matmul(fbar, bc), T.transpose(fbar)), dt)
+    bpre = tuning.tangent_buffer("return_map", T.matmul(T.matmul(fbar, bc), T.transpose(fbar)), dt)
     tr3 = T.trace(bpre) / 3.0
     dev_pre = T.add_diag(bpre, -tr3)
     sq = T.frob_sq(dev_pre)
@@ -292,7 +283,7 @@ def _return_map_components(bc, f3, params, dt):
     b = s_pre - SQRT_2_3 * params.sigma_y
     yielding = b > 0
     mubar = params.mu * tr3
-    gamma, visc = _rate_and_visc(2.0 * mubar * dt, b, params.eta, params.m)
+    gamma, visc = _rate_and_visc(2.0 * mubar * dt, b, params.eta, params.m, tuning.halley_low_precision)
     a_gamma = 2.0 * mubar * dt * gamma
     # h = 0 gives s = s_pre - a gamma = s_Y + eta gamma^m: take the form with the smaller correction,
     # so s keeps full relative precision also far below s_pre (eta -> 0, s_pre >> s_Y). visc is only
@@ -301,9 +292,10 @@ def _return_map_components(bc, f3, params, dt):
     s_new = jnp.where(yielding, s_plastic, s_pre)
     # 1 when elastic: the unused eq. 16 branch must stay finite (its det could be < 0), else its NaN
     # leaks into reverse-mode gradients through the where below.
-    ratio = materialize_tangent(jnp.where(yielding, s_new / jnp.where(yielding, s_pre, 1.0), 1.0), dt)
+    ratio = tuning.tangent_buffer("return_map", jnp.where(yielding, s_new / jnp.where(yielding, s_pre, 1.0), 1.0),
+                                  dt)
     b_ret = T.add_diag(T.scale(dev_pre, ratio), tr3)
-    b_ret = T.scale(b_ret, materialize_tangent(_inv_cbrt(T.det(b_ret)), dt))  # renormalize to det 1 (eq. 16)
+    b_ret = T.scale(b_ret, tuning.tangent_buffer("return_map", _inv_cbrt(T.det(b_ret)), dt))  # det 1 (eq. 16)
     bbar_new = T.where(yielding, b_ret, bpre)
     sq_new = T.frob_sq(T.dev(bbar_new))
     pos_new = sq_new > 0

@@ -11,12 +11,12 @@ What is differentiable (through `Simulator.rollout`):
 Geometry that only decides which grid nodes a collider covers (a plate's center and half_size, the
 floor height) acts through a discrete membership test: its derivative is zero almost everywhere.
 
-Forward mode (`mode="fwd"`) pushes one tangent per scalar input through the rollout (jacfwd: no tape,
-memory independent of the rollout length, cost grows with the number of inputs): the choice for the
-few material parameters a Gauss-Newton fit wants. Reverse mode (`mode="rev"`) pulls one cotangent per
-scalar output back (pullbacks through a checkpointed rollout, with the transfers' hand-written
-adjoints: memory grows with the number of frames, cost with the number of outputs): the choice for a
-scalar loss or for many inputs (state0 fields).
+How it is differentiated is the `adjoint` (`jaxfoam.adjoint`): `ForwardMode` pushes one tangent per
+scalar input through the rollout (no tape, memory independent of the rollout length, cost grows with
+the number of inputs): the choice for the few material parameters a Gauss-Newton fit wants, and the
+default (`DEFAULT_JACOBIAN`). `HandWritten`, `Checkpointed` or `Autodiff` pull one cotangent per scalar
+output back (memory grows with the number of frames, cost with the number of outputs): the choice for
+a scalar loss or for many inputs (state0 fields).
 """
 from __future__ import annotations
 
@@ -28,37 +28,14 @@ from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
-import jaxlib.version
 
 from ._params import FIT_FIELDS, Params
+from ._rollout import observe_default
 from ._scene import Plate, Scene
-from ._simulate import Simulator, observe_default
+from ._simulate import Simulator
 from ._state import State
+from .adjoint import DEFAULT_JACOBIAN, ForwardMode, check_adjoint, threaded_columns
 
-MODES = ("fwd", "rev")
-# XLA:CPU codegen options for the differentiated rollout (applied on the CPU backend only; results
-# agree to round-off): an empty YNNPACK fusion list (jaxlib 0.10.2 sends reductions to that library).
-# The transposes of the per-particle broadcasts over the few velocity components and stencil offsets
-# are reductions over tiny axes, which the library call ran 4x slower than XLA's own loop (a
-# (18669, 2) -> (18669,) sum: 0.44 vs 0.10 ms). Reverse mode on the 2D hanging plate at dx 2.5 mm,
-# 2 frames: 5.3-5.8x -> 4.4-4.6x the forward CPU time in four A/B runs in one process.
-# The older elemental emitters (xla_cpu_use_fusion_emitters=False) were used here too until
-# 2026-11-24: they had compiled these programs faster and run them 25% faster, but on the current
-# code the two are a wash for the gradients (2D hanging plate, dx 2.5 mm, 10 frames, two same-process
-# A/B runs: reverse 1.07x and 0.98x CPU time, jacfwd 1.02x, with the default emitters), while the
-# forward rollout runs 1.2-1.4x faster with the default emitters; one set of emitters serves both.
-CPU_COMPILER_OPTIONS = {}
-if tuple(jaxlib.version.__version_info__[:3]) >= (0, 10, 2):  # the option exists from this jaxlib on
-    CPU_COMPILER_OPTIONS["xla_cpu_experimental_ynn_fusion_type"] = ""
-# How forward mode carries its tangents, per dimension of the scene: "vmap" pushes them all through one
-# rollout at once (`jax.jacfwd`); "map" runs one `jax.jvp` rollout per scalar input in sequence
-# (`lax.map`), recomputing the primal each time. Measured on the hanging plate, 4 material parameters,
-# one core, float64 (the Jacobian's time / the forward's): in 2D vmap 7.1x against 9.2x for map (5,440
-# particles, 216 substeps) and 5.9x against 8.2x (1,354 particles, 360 substeps); in 3D vmap 17.9x
-# against 10.3x (6,798 particles, 90 substeps), where vmap's batched 27-node stencil sums of
-# grid-to-particle's tangent took half the time.
-FWD_TANGENTS = {2: "vmap", 3: "map"}
-TANGENT_MODES = ("vmap", "map")
 PARAM_FIELDS = tuple(f.name for f in dataclasses.fields(Params))
 SCENE_FIELDS = ("gravity", "floor_friction")
 PLATE_FIELDS = tuple(f.name for f in dataclasses.fields(Plate) if not f.metadata.get("static"))
@@ -148,35 +125,28 @@ def _put(leaves: dict, params: Params, state0: State, scene: Scene):
     return params, state0, scene
 
 
-def make_observable_jacobian(sim: Simulator, observable: Callable, wrt=FIT_FIELDS, mode: str = "fwd",
-                             observe: Callable = observe_default, checkpoint: bool = True,
-                             tangents: str | None = None) -> Callable:
+def make_observable_jacobian(sim: Simulator, observable: Callable, wrt=FIT_FIELDS, adjoint=DEFAULT_JACOBIAN,
+                             observe: Callable = observe_default) -> Callable:
     """A jit-compiled `fn(params, state0=None, scene=None) -> ObservableJacobian` for repeated use.
 
     Same arguments as `observable_jacobian` (which calls this and caches the result per simulator).
     """
-    if mode not in MODES:
-        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
-    if tangents is not None and tangents not in TANGENT_MODES:
-        raise ValueError(f"tangents must be one of {TANGENT_MODES} or None, got {tangents!r}")
-    if tangents is None:
-        tangents = FWD_TANGENTS[sim.scene.dim]
+    check_adjoint(adjoint)
     if not callable(observable):
         raise ValueError(f"observable must be a function frames dict -> array, got {observable!r}")
     wrt = _check_wrt(wrt, sim.scene)
+    forward = isinstance(adjoint, ForwardMode)
+    threads = adjoint.resolve_threads(sim.model.tuning) if forward else 1
 
     def value(leaves, params, state0, scene):
         params, state0, scene = _put(leaves, params, state0, scene)
-        # Reverse mode goes through the transfers' hand-written adjoints (faster, same gradient).
-        _, frames, health = sim.rollout(params, state0=state0, scene=scene, observe=observe,
-                                        checkpoint=checkpoint, hand_adjoint=mode == "rev")
+        _, frames, health = sim.rollout(params, state0=state0, scene=scene, observe=observe, adjoint=adjoint)
         out = jnp.asarray(observable(frames))
         return out, (out, health)
 
     def reverse(leaves, params, state0, scene):
         # jax.jacrev vmaps the pullback over a basis of the output space even for a scalar output; a
-        # batch of one made the transposed rollout 1.19x slower (2D hanging plate, dx 2.5 mm), so a
-        # scalar observable takes one plain pullback.
+        # scalar observable takes one plain pullback instead.
         out, pullback, aux = jax.vjp(lambda lv: value(lv, params, state0, scene), leaves, has_aux=True)
         if out.ndim == 0:
             return pullback(jnp.ones_like(out))[0], aux
@@ -184,11 +154,10 @@ def make_observable_jacobian(sim: Simulator, observable: Callable, wrt=FIT_FIELD
         rows = jax.vmap(pullback)(basis)[0]
         return {k: v.reshape(out.shape + leaves[k].shape) for k, v in rows.items()}, aux
 
-    def forward_map(leaves, params, state0, scene):
-        # One jvp rollout per scalar input, in sequence (FWD_TANGENTS); columns reassembled per input.
+    def columns(leaves, params, state0, scene, basis):
+        # One jvp rollout per row of `basis` (K, P) over the flattened inputs, in sequence: (K,) + S.
         flat, treedef = jax.tree_util.tree_flatten(leaves)
         sizes = [math.prod(a.shape) for a in flat]
-        eye = jnp.eye(sum(sizes), dtype=flat[0].dtype)
 
         def column(e):
             parts, start = [], 0
@@ -199,42 +168,70 @@ def make_observable_jacobian(sim: Simulator, observable: Callable, wrt=FIT_FIELD
                                   (jax.tree_util.tree_unflatten(treedef, parts),), has_aux=True)
             return tan, aux
 
-        cols, auxs = jax.lax.map(column, eye)  # (K,) + S
+        cols, auxs = jax.lax.map(column, basis)
+        return cols, jax.tree_util.tree_map(lambda x: x[0], auxs)
+
+    def blocks_of(cols, leaves):
+        # (P,) + S columns back to {name: S + input shape}.
+        flat, treedef = jax.tree_util.tree_flatten(leaves)
         out_shape = cols.shape[1:]
         blocks, start = [], 0
-        for a, n in zip(flat, sizes):
+        for a in flat:
+            n = math.prod(a.shape)
             blocks.append(jnp.moveaxis(cols[start:start + n], 0, -1).reshape(out_shape + a.shape))
             start += n
-        return jax.tree_util.tree_unflatten(treedef, blocks), jax.tree_util.tree_map(lambda x: x[0], auxs)
+        return jax.tree_util.tree_unflatten(treedef, blocks)
 
-    if mode == "rev":
-        jac = reverse
-    else:
-        jac = jax.jacfwd(value, has_aux=True) if tangents == "vmap" else forward_map
-
-    def run(params, state0, scene):
+    def leaves_of(params, state0, scene):
         params = params.astype(sim.dtype)
         leaves = {k: jnp.asarray(_get(k, params, state0, scene)) for k in wrt}
         for k, v in leaves.items():
             if not jnp.issubdtype(v.dtype, jnp.floating):
                 raise ValueError(f"wrt entry {k!r} is not a floating-point array (dtype {v.dtype})")
-        J, (out, health) = jac(leaves, params, state0, scene)
+        return params, leaves
+
+    def run(params, state0, scene):
+        params, leaves = leaves_of(params, state0, scene)
+        if not forward:
+            J, (out, health) = reverse(leaves, params, state0, scene)
+        elif adjoint.tangents == "vmap":
+            J, (out, health) = jax.jacfwd(value, has_aux=True)(leaves, params, state0, scene)
+        else:
+            p = sum(math.prod(v.shape) for v in leaves.values())
+            cols, (out, health) = columns(leaves, params, state0, scene, jnp.eye(p, dtype=params.mu.dtype))
+            J = blocks_of(cols, leaves)
         return out, J, health
 
-    run = jax.jit(run, compiler_options=CPU_COMPILER_OPTIONS if jax.default_backend() == "cpu" else None)
+    def run_group(params, state0, scene, basis):
+        params, leaves = leaves_of(params, state0, scene)
+        cols, (out, health) = columns(leaves, params, state0, scene, basis)
+        return (out, health), cols
+
+    opts = dict(sim.model.tuning.compiler_options) or None
+    run = jax.jit(run, compiler_options=opts)
+    run_group = jax.jit(run_group, compiler_options=opts)
+    compiled = []
 
     def fn(params: Params, state0: State | None = None, scene: Scene | None = None) -> ObservableJacobian:
         params.validate()
         state0 = sim.state0 if state0 is None else state0
         scene = sim.scene if scene is None else scene
-        return ObservableJacobian(*run(params, state0, scene), wrt)
+        if threads <= 1:
+            return ObservableJacobian(*run(params, state0, scene), wrt)
+        _, leaves = leaves_of(params, state0, scene)
+        p = sum(math.prod(v.shape) for v in leaves.values())
+        (out, health), cols = threaded_columns(lambda b: run_group(params, state0, scene, jnp.asarray(b)), p,
+                                               threads, sim.dtype, bool(compiled))
+        compiled.append(True)
+        return ObservableJacobian(out, blocks_of(cols, leaves), health, wrt)
 
     def lower(params: Params, state0: State | None = None, scene: Scene | None = None):
-        """The lowered program (for `.compile().cost_analysis()` / `.memory_analysis()`)."""
+        """The lowered program (for `.compile().cost_analysis()` / `.memory_analysis()`), all columns in one."""
         return run.lower(params, sim.state0 if state0 is None else state0, sim.scene if scene is None else scene)
 
     fn.lower = lower
-    fn.tangents = tangents if mode == "fwd" else None  # the forward-mode route taken (FWD_TANGENTS)
+    fn.adjoint = adjoint
+    fn.threads = threads
     return fn
 
 
@@ -244,9 +241,8 @@ CACHE_PER_SIMULATOR = 8
 
 
 def observable_jacobian(sim: Simulator, params: Params, observable: Callable, wrt=FIT_FIELDS,
-                        mode: str = "fwd", *, state0: State | None = None, scene: Scene | None = None,
-                        observe: Callable = observe_default, checkpoint: bool = True,
-                        tangents: str | None = None) -> ObservableJacobian:
+                        adjoint=DEFAULT_JACOBIAN, *, state0: State | None = None, scene: Scene | None = None,
+                        observe: Callable = observe_default) -> ObservableJacobian:
     """Value and Jacobian of `observable(frames)` with respect to the inputs named in `wrt`.
 
     Args:
@@ -255,29 +251,27 @@ def observable_jacobian(sim: Simulator, params: Params, observable: Callable, wr
       params: material parameters (SI units) at which to differentiate.
       observable: frames dict (arrays (T, N, ...) as recorded by `observe`) -> array of any shape S,
         e.g. `lambda fr: jnp.mean(fr["x"][:, :, 1], axis=1)` (mean height per frame, m, S = (T,)).
-        The compiled function is cached per (simulator, observable, wrt, mode, observe, checkpoint):
-        pass the same function object on repeated calls (a new lambda each call recompiles).
+        The compiled function is cached per (simulator, observable, wrt, adjoint, observe): pass the
+        same function object on repeated calls (a new lambda each call recompiles).
       wrt: input names: Params fields ("mu", "sigma_y", "eta", "m", "kappa", "rho"), scene fields
         ("gravity", "floor_friction"), plate motion ("plate0.amplitude", "plate0.frequency", ...),
         initial state ("state0.x", "state0.v", ...). Default: the four fitted parameters.
-      mode: "fwd" (jacfwd: one tangent per scalar input, no tape) or "rev" (one cotangent per scalar
-        output, through the rollout's per-frame checkpoints and `hand_adjoint=True`).
-      tangents: forward mode only: "vmap" (all tangents through one rollout, `jax.jacfwd`) or "map"
-        (one jvp rollout per scalar input, in sequence); None picks FWD_TANGENTS[scene dimension].
-        Both give the same Jacobian to round-off.
+      adjoint: `jaxfoam.adjoint.ForwardMode(tangents="vmap" | "map", threads=...)` for forward mode
+        (default DEFAULT_JACOBIAN), or `HandWritten()` / `Checkpointed()` / `Autodiff()` for reverse
+        mode (one cotangent per scalar output). All give the same Jacobian to round-off.
       state0, scene: override the simulator's initial state and scene.
       observe: per-frame record function passed to the rollout.
-      checkpoint: per-frame rematerialization in reverse mode (peak memory ~ frames, not substeps).
     Returns:
       ObservableJacobian(value (S), jacobian {name: (S + input shape)}, health, wrt); `.matrix()` gives
       the (prod S, P) matrix for Gauss-Newton.
     Raises:
-      ValueError for an unknown mode, tangents or input name.
+      ValueError (AdjointError) for an unknown adjoint or input name.
     """
-    key = (observable, _check_wrt(wrt, sim.scene), mode, observe, checkpoint, tangents)
+    check_adjoint(adjoint)
+    key = (observable, _check_wrt(wrt, sim.scene), adjoint, observe)
     per_sim = _CACHE.setdefault(sim, {})
     if key not in per_sim:
         if len(per_sim) >= CACHE_PER_SIMULATOR:
             del per_sim[next(iter(per_sim))]
-        per_sim[key] = make_observable_jacobian(sim, observable, key[1], mode, observe, checkpoint, tangents)
+        per_sim[key] = make_observable_jacobian(sim, observable, key[1], adjoint, observe)
     return per_sim[key](params, state0=state0, scene=scene)

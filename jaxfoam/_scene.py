@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._errors import JaxfoamError
 from ._state import State, make_state
 
 KINDS = ("hanging_plate", "drop", "squeeze")
@@ -35,7 +36,7 @@ FLOOR_CONTACTS = ("grid", "particle")
 DEFAULT_PPC = {2: 4, 3: 8}
 
 
-class SceneError(ValueError):
+class SceneError(JaxfoamError, ValueError):
     """A scene description that does not follow the spec; the message names the field."""
 
 

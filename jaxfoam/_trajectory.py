@@ -38,6 +38,7 @@ import h5py
 import jax
 import numpy as np
 
+from ._errors import JaxfoamError
 from ._params import Params
 
 FORMAT = "jaxfoam-trajectory"
@@ -51,7 +52,7 @@ REQUIRED_FRAMES = ("x", "active")
 GZIP_LEVEL = 4
 
 
-class TrajectoryError(ValueError):
+class TrajectoryError(JaxfoamError, ValueError):
     """A file that is not a readable jaxfoam trajectory; the message names the file and the field."""
 
 

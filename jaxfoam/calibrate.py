@@ -54,9 +54,12 @@ import numpy as np
 import fitting
 from fitting.uncertainty import DEFAULT_MAX_RELATIVE_WIDTH
 
+from ._errors import JaxfoamError
 from ._params import FIT_FIELDS, Params
 from ._scene import Scene, init_state
-from ._simulate import Simulator, _rollout_jit
+from ._rollout import rollout
+from ._simulate import Simulator
+from .adjoint import DEFAULT_JACOBIAN, Autodiff, threaded_columns
 from .fracture import FractureConfig
 from .resample import ResampleConfig
 from .io import Camera, Silhouettes, plate_footprint, read_silhouettes
@@ -154,12 +157,6 @@ FIT_DTYPE = "float64"
 # at 2.2-3.1x the fit's wall time (experiments/results/fit_features.md).
 FIT_RESAMPLE = None
 FIT_FRACTURE = None
-# Jacobian columns are independent jvp rollouts. A fit's rollout (a few hundred to a few thousand
-# particles) runs its small kernels one at a time on one core, so on the CPU backend the columns are
-# split into this many groups evaluated concurrently from threads (results bit-identical): measured
-# 1.13-1.31x faster per Jacobian on 2 cores shared with two other jobs (drop, 179 particles).
-# 1 evaluates every column in one sequential call; other backends always do.
-JACOBIAN_THREADS = 2
 # Every frame of a rollout runs the same number of substeps, sized for its widest frame interval, so a
 # gap in the data (a dropped frame) would shrink every frame's time step. The fit's rollouts record
 # frames at the data's times with unobserved frames inserted into each gap, so that no interval is wider
@@ -169,7 +166,7 @@ JACOBIAN_THREADS = 2
 MAX_FRAMES_PER_OBSERVED = 4
 
 
-class CalibrationError(ValueError):
+class CalibrationError(JaxfoamError, ValueError):
     """Bad calibration input (settings, data); the message names the field."""
 
 
@@ -576,13 +573,9 @@ class _Static:
     """Hashable configuration of the residual (a static argument of the jitted functions)."""
 
     transform: fitting.ParameterTransform
-    grid: object
-    substeps: int
     cfg: RenderConfig
     distance_weight: float
     chamfer_weight: float
-    resample: ResampleConfig | None = None
-    fracture: FractureConfig | None = None
     observed: tuple = ()  # indices of the observed frames among the rollout's (`simulation_frames`)
 
 
@@ -618,62 +611,47 @@ def _params_from(z, static: _Static, base: Params) -> Params:
     return base.replace(**{n: theta[i] for i, n in enumerate(static.transform.names)})
 
 
-def _residual(z, static: _Static, base: Params, state0, scene, frame_times, frame_dts, target):
+def _residual(z, static: _Static, base: Params, model, state0, frame_times, target):
     params = _params_from(z, static, base)
-    _, frames, _ = _rollout_jit(state0, params, scene, frame_times, frame_dts, static.grid, static.substeps,
-                                observe_positions, False, static.resample, static.fracture)
+    _, frames, _ = rollout(model, state0, params, frame_times, observe=observe_positions, adjoint=Autodiff())
     x, active = _observed(frames, static)
     return residuals(x, active, target, static.cfg, distance=static.distance_weight,
                      chamfer_weight=static.chamfer_weight)
 
 
 @functools.partial(jax.jit, static_argnames=("static",))
-def _residual_jit(z, static, base, state0, scene, frame_times, frame_dts, target):
-    return _residual(z, static, base, state0, scene, frame_times, frame_dts, target)
+def _residual_jit(z, static, base, model, state0, frame_times, target):
+    return _residual(z, static, base, model, state0, frame_times, target)
 
 
 @functools.partial(jax.jit, static_argnames=("static",))
-def _residual_and_jacobian(z, static, base, state0, scene, frame_times, frame_dts, target):
-    """(r (n,), dr/dz (n, p)) by forward mode: one jvp rollout per fitted parameter (p <= 4).
-
-    Each column is `jax.jvp` along one basis vector, run in sequence by `lax.map` (one compiled
-    rollout body). Not `jax.jacfwd`: it vmaps the tangents, which ran 42x slower than the forward
-    rollout on XLA:CPU in an early version (2,813 particles, 4 tangents) where one jvp (along sigma_y)
-    cost about one forward rollout. Re-measured on 2026-11-25 (default-grid drop fit, 794 particles,
-    3,530 substeps, 2 cores, the whole residual and Jacobian as multiples of the residual's wall
-    time): these columns in two threads (`CalibrationProblem.residual_and_jacobian`) 4.0x, in one
-    thread 7.5x, `jax.jacfwd` 6.0x. Nor `jax.linearize` once with the linear map applied per column:
-    it stores every substep's residuals, and ran 2.4x slower (drop scene, 179 particles, 3,310
-    substeps: 2.27 against 0.95 s wall, one thread).
-    """
+def _residual_and_jacobian(z, static, base, model, state0, frame_times, target):
+    """(r (n,), dr/dz (n, p)) by forward mode: one jvp rollout per fitted parameter (p <= 4), in
+    sequence by `lax.map` (one compiled rollout body; `jaxfoam.adjoint.DEFAULT_JACOBIAN`)."""
 
     def fn(zz):
-        return _residual(zz, static, base, state0, scene, frame_times, frame_dts, target)
+        return _residual(zz, static, base, model, state0, frame_times, target)
 
-    def column(e):
-        return jax.jvp(fn, (z,), (e,))
-
-    rs, cols = jax.lax.map(column, jnp.eye(z.shape[0], dtype=z.dtype))
+    rs, cols = jax.lax.map(lambda e: jax.jvp(fn, (z,), (e,)), jnp.eye(z.shape[0], dtype=z.dtype))
     return rs[0], cols.T
 
 
 @functools.partial(jax.jit, static_argnames=("static",))
-def _residual_and_columns(z, basis, static, base, state0, scene, frame_times, frame_dts, target):
+def _residual_and_columns(z, basis, static, base, model, state0, frame_times, target):
     """r (n,) and the directional derivatives dr/dz . e (k, n) along the rows e of `basis` (k, p),
     one jvp rollout per row in sequence (`lax.map`); a zero row gives a zero column."""
 
     def fn(zz):
-        return _residual(zz, static, base, state0, scene, frame_times, frame_dts, target)
+        return _residual(zz, static, base, model, state0, frame_times, target)
 
     rs, cols = jax.lax.map(lambda e: jax.jvp(fn, (z,), (e,)), basis)
     return rs[0], cols
 
 
 @functools.partial(jax.jit, static_argnames=("static",))
-def _positions(z, static, base, state0, scene, frame_times, frame_dts):
+def _positions(z, static, base, model, state0, frame_times):
     params = _params_from(z, static, base)
-    _, frames, health = _rollout_jit(state0, params, scene, frame_times, frame_dts, static.grid, static.substeps,
-                                     observe_positions, False, static.resample, static.fracture)
+    _, frames, health = rollout(model, state0, params, frame_times, observe=observe_positions, adjoint=Autodiff())
     return frames["x"], frames["active"], health
 
 
@@ -700,50 +678,35 @@ class CalibrationProblem:
         self.pixel_level, self.masks, self.weights, self.camera, self.cfg = level, masks, weights, camera, cfg
         self.target = target
         self.dx = sim.dx
-        self.static = _Static(transform=transform, grid=sim.grid, substeps=sim.substeps, cfg=cfg,
-                              distance_weight=float(settings.distance_weight),
+        self.static = _Static(transform=transform, cfg=cfg, distance_weight=float(settings.distance_weight),
                               chamfer_weight=float(settings.chamfer_weight),
-                              resample=sim.resample, fracture=sim.fracture,
                               observed=tuple(int(i) for i in self.observed))
         dt = sim.dtype
-        self._times = jnp.asarray(sim.plan.frame_times, dt)
-        self._dts = jnp.asarray(sim.plan.frame_dts, dt)
+        self._times = jnp.asarray(sim.frame_times, dt)
         self._base = base.astype(dt)
-        self.jacobian_threads = JACOBIAN_THREADS
+        # The fit's Jacobian: forward mode, one jvp rollout per parameter in the tuning's threads.
+        self.jacobian_adjoint = DEFAULT_JACOBIAN
+        self.jacobian_threads = DEFAULT_JACOBIAN.resolve_threads(sim.model.tuning)
         self._columns_compiled = False
 
     def _args(self):
-        return (self.static, self._base, self.sim.state0, self.scene, self._times, self._dts)
+        return (self.static, self._base, self.sim.model, self.sim.state0, self._times)
 
     def residual(self, z) -> jax.Array:
         """Residual vector r(z), (n,), dimensionless (see `silhouette.residuals`)."""
         return _residual_jit(jnp.asarray(z, self.sim.dtype), *self._args(), self.target)
 
     def residual_and_jacobian(self, z):
-        """(r (n,), dr/dz (n, p)) by forward mode (one jvp rollout per fitted parameter).
-
-        On the CPU backend the columns run in JACOBIAN_THREADS concurrent groups of equal size (the last
-        padded with zero directions, whose columns are dropped), so one compiled program serves every
-        group; the first call compiles it on this thread before any other starts."""
+        """(r (n,), dr/dz (n, p)) by forward mode (one jvp rollout per fitted parameter), the columns in
+        `jacobian_threads` concurrent groups (`jaxfoam.adjoint.threaded_columns`)."""
         z = jnp.asarray(z, self.sim.dtype)
         p = z.shape[0]
-        k = min(int(self.jacobian_threads), p) if jax.default_backend() == "cpu" else 1
-        if k <= 1:
+        if min(int(self.jacobian_threads), p) <= 1:
             return _residual_and_jacobian(z, *self._args(), self.target)
-        rows = -(-p // k)
-        eye = np.eye(rows * k, p, dtype=np.dtype(self.sim.dtype))  # rows beyond p are zero directions
-        groups = [jnp.asarray(eye[i * rows:(i + 1) * rows]) for i in range(k)]
-        run = lambda basis: jax.block_until_ready(
-            _residual_and_columns(z, basis, *self._args(), self.target))
-        first = None
-        if not self._columns_compiled:  # compile on this thread, then run the other groups concurrently
-            first = run(groups[0])
-            self._columns_compiled = True
-        with concurrent.futures.ThreadPoolExecutor(k - 1) as pool:
-            later = [pool.submit(run, g) for g in groups[1:]]
-            out = [run(groups[0]) if first is None else first] + [f.result() for f in later]
-        cols = jnp.concatenate([c for _, c in out])[:p]
-        return out[0][0], cols.T
+        run = lambda basis: _residual_and_columns(z, jnp.asarray(basis), *self._args(), self.target)
+        r, cols = threaded_columns(run, p, self.jacobian_threads, self.sim.dtype, self._columns_compiled)
+        self._columns_compiled = True
+        return r, cols.T
 
     def loss(self, z) -> float:
         r = np.asarray(self.residual(z))
@@ -1230,7 +1193,7 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
     say(f"fit: {problem.scene.kind} {problem.scene.dim}D, dx = {problem.dx:.4g} m, "
         f"{int(np.sum(sim.state0.active))} particles, {len(problem.frames)} frames "
         f"(t = {problem.data.times[problem.frames[0]]:.4g}..{problem.data.times[problem.frames[-1]]:.4g} s"
-        + (f"; {len(sim.plan.frame_times)} simulated, gaps filled" if len(sim.plan.frame_times) > len(problem.frames)
+        + (f"; {len(sim.frame_times)} simulated, gaps filled" if len(sim.frame_times) > len(problem.frames)
            else "") + f"), {sim.substeps} substeps/frame "
         f"of dt = {sim.dt:.3g} s, images {problem.cfg.height}x{problem.cfg.width} px at level "
         f"{problem.pixel_level} ({problem.cfg.pixel_size:.3g} m/px); fitting {', '.join(names)} with "

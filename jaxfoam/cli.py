@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ._errors import JaxfoamError
+
 # Shaving-cream-like defaults (order of magnitude of Gillette foam rheometry, Durian 1990 / Ovarlez 2010):
 # shear modulus ~ 100-300 Pa, yield stress ~ 20-60 Pa, Herschel-Bulkley consistency ~ 5-30 Pa s^m with
 # a shear-thinning exponent ~ 0.4-0.6. kappa and rho come from the scene.
@@ -38,7 +40,7 @@ DEMO_FRAMES = 30
 DEMO_PANELS = 8
 
 
-class CLIError(Exception):
+class CLIError(JaxfoamError):
     """A user error reported as `jaxfoam: error: ...` with exit code 2."""
 
 
@@ -122,7 +124,10 @@ def run_simulation(scene_path, out, *, dx=None, ppc=None, dtype="float64", frame
 
     from ._params import Params
     from ._scene import load_scene
-    from ._simulate import CFL, Simulator, observe_default
+    from ._model import CFL
+    from ._rollout import observe_default
+    from ._simulate import Simulator
+    from .adjoint import Autodiff
     from ._trajectory import TrajectoryWriter
 
     jdtype = _dtype(dtype)
@@ -163,7 +168,7 @@ def run_simulation(scene_path, out, *, dx=None, ppc=None, dtype="float64", frame
             # compiled rollout is reused.
             part = Simulator(scene, block, params, dx, dtype=jdtype, state0=state, substeps=sim.substeps,
                              max_speed=sim.max_speed, cfl=CFL if cfl is None else cfl)
-            state, fr, health = part.rollout(p_run, checkpoint=False)
+            state, fr, health = part.rollout(p_run, adjoint=Autodiff())
             fr = jax.device_get(fr)
             part.check(fr, health)
             writer.append(fr, block)
@@ -300,8 +305,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     """Entry point of the `jaxfoam` command; returns the exit code (0 ok, 1 simulation failed, 2 bad input)."""
+    import jax
+
     from ._simulate import SimulationError
 
+    if os.environ.get("JAXFOAM_X64", "1") != "0":
+        # The command line is an application: float64 for --dtype float64 and fits (JAXFOAM_X64=0: off).
+        jax.config.update("jax_enable_x64", True)
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

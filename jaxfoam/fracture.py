@@ -4,7 +4,7 @@ Plain MPM has no fracture: points share forces through the grid while they are w
 of each other, so a stretched thread thins into a chain of points that keeps pulling (with
 resampling keeping it sampled, a pulled viscous strip never pinches off at all: see
 experiments/results/fracture_demo.md). This stage, run after the constitutive update of every
-substep (`substep(..., fracture=FractureConfig())`), does three things:
+substep (`make_model(..., fracture=FractureConfig())`), does three things:
 
 1. detect weak points, by one or two criteria:
    a. neighbourhood density (always on): the ratio of the grid density interpolated at the point,
@@ -59,7 +59,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._constitutive import det
-from ._mpm import Grid, _flat_index, _offsets, _stencil, _stencil_weights, apply_colliders, floor_touch, p2g, safe_div
+from ._boundary import apply_colliders, floor_touch
+from ._grid import Grid, _flat_index, _offsets, _stencil, _stencil_weights
+from ._mpm import p2g, safe_div
 from ._params import Params
 from ._scene import Scene
 from ._state import State

@@ -24,6 +24,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from ._errors import JaxfoamError
 from ._scene import Scene, load_scene
 
 FORMAT = "jaxfoam-silhouettes"
@@ -36,7 +37,7 @@ GZIP_LEVEL = 4
 EDGE_TOL = 1e-9
 
 
-class SilhouetteFormatError(ValueError):
+class SilhouetteFormatError(JaxfoamError, ValueError):
     """A silhouette file or array set that does not follow the format; the message names the field."""
 
 

@@ -23,8 +23,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._fusion import hoist
-from ._mpm import _strides
+from ._xla_cpu import tuning_for
+from ._grid import _strides
 
 
 def _norm(v, axis=-1):
@@ -275,8 +275,8 @@ class SDFCollider:
 
     def apply(self, v, node_x, t, mass=None, dt=None, dx=None):
         d = v.shape[-1]
-        # Computed once, not per grid node (jaxfoam._fusion).
-        o, vc = hoist((self.offset(t, d, v.dtype), self.velocity(t, d, v.dtype)), t)
+        # Computed once, not per grid node (a buffer point of the backend's tuning).
+        o, vc = tuning_for().buffer("collider_motion", (self.offset(t, d, v.dtype), self.velocity(t, d, v.dtype)), t)
         vc = vc[None, :]
         rel_x = node_x - o[None, :]
         phi = self.shape(rel_x)

@@ -26,7 +26,8 @@ import numpy as np
 
 from ._params import FIT_FIELDS, Params
 from ._scene import DEFAULT_PPC, Scene, load_scene
-from ._simulate import CFL, Simulator
+from ._model import CFL
+from ._simulate import Simulator
 from .io import Camera, Silhouettes, camera_covering, plate_footprint, validate, write_silhouettes
 from .silhouette import HALF_DENSITY, make_render_config, particle_spacing, splat_density
 
