@@ -80,9 +80,10 @@ class Model:
       scene: the `Scene`, its data leaves in the model's dtype.
       grid: the background `Grid` (dx m, GRID_PAD cells beyond the domain).
       dt: the substep, s (`jaxfoam.step`; a rollout's frames use interval / substeps <= dt).
-      dt_cfl: the CFL bound the substep was chosen under, s.
+      dt_cfl: the CFL bound the substep was chosen under, s (None when dt was set by hand).
       substeps: substeps per frame of the frame plan, or None (a rollout then picks them from its
         frame times, which must be concrete).
+      max_speed: the material speed bound the CFL step allows for, m/s (None when dt was set by hand).
       dtype: "float32" or "float64".
       ppc: particles per cell for sampling (`Model.sample`).
       colliders: extra colliders (e.g. `jaxfoam.sdf.SDFCollider`), applied on the grid in order.
@@ -93,9 +94,10 @@ class Model:
 
     scene: Scene
     dt: float
-    dt_cfl: float
     grid: Grid = dataclasses.field(metadata=dict(static=True))
+    dt_cfl: float | None = None
     substeps: int | None = dataclasses.field(metadata=dict(static=True), default=None)
+    max_speed: float | None = dataclasses.field(metadata=dict(static=True), default=None)
     dtype: str = dataclasses.field(metadata=dict(static=True), default="float64")
     ppc: int | None = dataclasses.field(metadata=dict(static=True), default=None)
     colliders: tuple = dataclasses.field(metadata=dict(static=True), default=())
@@ -141,6 +143,7 @@ def make_model(scene: Scene, dx: float, *, params_ref: Params, frame_times=None,
     Raises ModelError naming the argument for out-of-range values, before any compute.
     """
     params_ref.validate()
+    wave_speed(params_ref)  # the time step needs values: a clear error under jit or vmap, first
     if not (isinstance(dx, (int, float)) and not isinstance(dx, bool) and dx > 0 and math.isfinite(dx)):
         raise ModelError(f"dx must be a positive grid spacing in m, got {dx!r}")
     if not (isinstance(cfl, (int, float)) and 0 < cfl <= 1.0):
@@ -175,6 +178,6 @@ def make_model(scene: Scene, dx: float, *, params_ref: Params, frame_times=None,
         step = dt_cfl if dt is None else float(dt)
     # Scene data (gravity, plate motion) in the simulation's precision.
     scene = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), scene)
-    return Model(scene=scene, dt=float(step), dt_cfl=float(dt_cfl), grid=grid, substeps=n, dtype=dtype.name,
-                 ppc=ppc, colliders=colliders, fracture=fracture, resample=resample,
+    return Model(scene=scene, dt=float(step), dt_cfl=float(dt_cfl), grid=grid, substeps=n, max_speed=speed,
+                 dtype=dtype.name, ppc=ppc, colliders=colliders, fracture=fracture, resample=resample,
                  tuning=tuning_for() if tuning is None else tuning)

@@ -56,8 +56,9 @@ class Params:
                 except (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError, TypeError):
                     continue
             try:
-                flat = [float(x) for x in jnp.ravel(jnp.asarray(value))]
-            except TypeError as exc:
+                # numpy, not jnp: inside a jit trace jnp would stage even a Python float.
+                flat = [float(x) for x in np.ravel(np.asarray(value, dtype=np.float64))]
+            except (TypeError, ValueError) as exc:
                 raise ValueError(f"Params.{name} must be a real number ({rng}), got {value!r}") from exc
             for x in flat:
                 if not math.isfinite(x):

@@ -18,6 +18,10 @@ from ._xla_cpu.layout import from_components, sort_by_cell, to_components, unsor
 from .adjoint import Checkpointed, check_adjoint, checkpoint_blocks
 
 STATE_FIELDS = ("x", "v", "C", "F", "bbar_e")
+# Courant number dt (c + |v|) / dx above which a rollout is refused (concrete parameters) or flagged
+# (traced ones, in its health): past one cell per substep the explicit update is unstable.
+MAX_COURANT = 1.0
+HEALTH_NAMES = STATE_FIELDS + ("J <= 0 (inverted)", f"Courant number > {MAX_COURANT:g}")
 
 
 def observe_default(state: State, params: Params) -> dict:
@@ -27,9 +31,16 @@ def observe_default(state: State, params: Params) -> dict:
                 s=deviatoric_stress_norm(state.bbar_e, params), J=det(state.F), active=state.active)
 
 
-def health(state: State):
-    """Per field of STATE_FIELDS: whether all active values are finite, and the first bad particle;
-    then whether no active particle is inverted (J <= 0), and the first that is."""
+def _wave_speed(params: Params):
+    """sqrt((kappa + 4/3 mu) / rho), m/s, traceable (0 for a non-positive argument)."""
+    sq = (params.kappa + 4.0 / 3.0 * params.mu) / params.rho
+    return jnp.sqrt(jnp.where(sq > 0, sq, 0.0))
+
+
+def health(state: State, params: Params, dt, dx: float):
+    """Per entry of HEALTH_NAMES: whether all active values of the STATE_FIELDS are finite, no active
+    particle is inverted (J <= 0), and the substep dt s keeps the Courant number dt (c + max|v|) / dx
+    <= MAX_COURANT for these parameters' wave speed c; and the first bad particle of each."""
     ok, first = [], []
     for name in STATE_FIELDS:
         a = getattr(state, name)
@@ -40,7 +51,25 @@ def health(state: State):
     inverted = (J <= 0) & state.active
     ok.append(~jnp.any(inverted))
     first.append(jnp.argmax(inverted))
+    speed = jnp.where(state.active, jnp.sqrt(jnp.sum(state.v * state.v, axis=1)), 0.0)
+    ok.append(dt * (_wave_speed(params) + jnp.max(speed)) <= MAX_COURANT * dx)
+    first.append(jnp.argmax(speed))
     return jnp.stack(ok), jnp.stack(first).astype(jnp.int32)
+
+
+def check_courant(model: Model, params: Params, dts) -> None:
+    """Raise ModelError when concrete `params` make the largest substep of `dts` (s) exceed the
+    Courant limit MAX_COURANT with the model's material speed bound (nothing for traced values)."""
+    if not _concrete((params, dts)):
+        return
+    from ._model import wave_speed
+    c = wave_speed(params)
+    dt = float(np.max(np.asarray(dts)))
+    bound = MAX_COURANT * model.dx / (c + (model.max_speed or 0.0))
+    if dt > bound:
+        raise ModelError(f"the substep dt = {dt:.4g} s exceeds the stability bound {bound:.4g} s of these "
+                         f"parameters (wave speed c = sqrt((kappa + 4/3 mu) / rho) = {c:.4g} m/s, dx = "
+                         f"{model.dx:g} m): build the model (make_model / Simulator) with params_ref set to them")
 
 
 def _concrete(x) -> bool:
@@ -81,11 +110,15 @@ def rollout(model: Model, state0: State, params: Params, frame_times, *, observe
     vmaps over params and initial states. Each frame runs model.substeps substeps of its interval /
     substeps (<= model.dt). observe: a hashable function (a static argument). adjoint: how reverse mode
     differentiates it (`jaxfoam.adjoint`; forward mode works with every adjoint but `HandWritten`).
-    Returns (final State, frames pytree with a leading (T,) axis, health: ((T, 6) bool ok, (T, 6)
-    first bad particle) per frame for STATE_FIELDS and inversion; `Simulator.check` reads it).
+    Returns (final State, frames pytree with a leading (T,) axis, health: ((T, 7) bool ok, (T, 7)
+    first bad particle) per frame and entry of HEALTH_NAMES; `Simulator.check` reads it).
+    Raises ValueError for parameters out of range or, with concrete parameters, a substep beyond their
+    Courant limit (`check_courant`), before any compute.
     """
     check_adjoint(adjoint)
+    params.validate()
     times, dts, n = frame_plan(model, state0, frame_times)
+    check_courant(model, params, dts)
     params = params.astype(jnp.dtype(model.dtype))
     return _rollout(model, state0, params, times, dts, n, observe, adjoint)
 
@@ -138,7 +171,7 @@ def _rollout(model: Model, state0: State, params: Params, frame_times, frame_dts
         if sort:
             state = unsort(state, perm)
         state = from_components(state).replace(t=t_target)
-        return state, (observe(state, params), health(state))
+        return state, (observe(state, params), health(state, params, dt, grid.dx))
 
     if adjoint.checkpoint:
         # Reverse mode stores one state per frame and recomputes the frame in its backward pass.

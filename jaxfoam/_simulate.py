@@ -12,7 +12,7 @@ from ._compile_guard import release_if_near_map_limit
 from ._errors import JaxfoamError
 from ._model import CFL, Model, _value, make_model
 from ._params import Params
-from ._rollout import STATE_FIELDS, observe_default, rollout
+from ._rollout import HEALTH_NAMES, observe_default, rollout
 from ._scene import Scene
 from ._state import State
 from ._xla_cpu import tuning_for
@@ -95,6 +95,11 @@ class Simulator:
         return self.model.dt
 
     @property
+    def max_speed(self) -> float:
+        """The material speed bound of the CFL step, m/s."""
+        return self.model.max_speed
+
+    @property
     def dt_cfl(self) -> float:
         return self.model.dt_cfl
 
@@ -140,21 +145,29 @@ class Simulator:
         return rollout(model, self.state0 if state0 is None else state0, params, self.frame_times,
                        observe=observe, adjoint=adjoint)
 
-    def check(self, frames, health) -> None:
-        """Raise SimulationError naming the first frame, time, quantity and particle that went bad."""
+    def check(self, frames, health, frame_times=None) -> None:
+        """Raise SimulationError naming the first frame, time, quantity and particle that went bad
+        (frame_times: those of the rollout checked, s, when not the simulator's own)."""
+        times = self.frame_times if frame_times is None else frame_times
         ok, first = jax.device_get(health)
         bad = ~ok
         if not bad.any():
             return
         k = int(np.argmax(bad.any(axis=1)))
         q = int(np.argmax(bad[k]))
-        name = (STATE_FIELDS + ("J <= 0 (inverted)",))[q]
+        name = HEALTH_NAMES[q]
         p = int(first[k, q])
         where = ""
         if isinstance(frames, dict) and "x" in frames and k > 0:  # frame 0 has no recorded predecessor
             where = f" at position {np.asarray(frames['x'][k - 1, p]).tolist()} m (previous frame)"
+        if q == len(HEALTH_NAMES) - 1:
+            raise SimulationError(
+                f"the substep exceeded the stability limit at frame {k} (t = {np.asarray(times)[k]:.6g} s): "
+                f"{name} with these parameters' wave speed and the fastest particle ({p}){where}. The model's "
+                f"dt = {self.dt:.3g} s was chosen for its reference parameters (params_ref): build it with the "
+                f"parameters you run (make_model / Simulator), or lower cfl.")
         raise SimulationError(
-            f"simulation became non-finite at frame {k} (t = {self.frame_times[k]:.6g} s, "
+            f"simulation became non-finite at frame {k} (t = {np.asarray(times)[k]:.6g} s, "
             f"within substeps of dt = {self.dt:.3g} s): first bad quantity '{name}' at particle {p}{where}. "
             f"Reduce the time step (dt = {self.dt:.3g} s, CFL bound {self.dt_cfl:.3g} s: lower cfl or "
             f"leave substeps to the CFL bound) or dx, "

@@ -126,6 +126,7 @@ def run_simulation(scene_path, out, *, dx=None, ppc=None, dtype="float64", frame
     from ._scene import load_scene
     from ._model import CFL
     from ._rollout import observe_default
+    from ._rollout import rollout
     from ._simulate import Simulator
     from .adjoint import Autodiff
     from ._trajectory import TrajectoryWriter
@@ -164,13 +165,10 @@ def run_simulation(scene_path, out, *, dx=None, ppc=None, dtype="float64", frame
         bar.update(0.0, 0, 0, force=True)
         while done < frames:
             block = times[done:done + frames_per_block]
-            # Same grid, substeps per frame and frame spacing as `sim`, so dt is unchanged and the
-            # compiled rollout is reused.
-            part = Simulator(scene, block, params, dx, dtype=jdtype, state0=state, substeps=sim.substeps,
-                             max_speed=sim.max_speed, cfl=CFL if cfl is None else cfl)
-            state, fr, health = part.rollout(p_run, adjoint=Autodiff())
+            # The same model (substeps per frame, frame spacing) for every block: one compiled rollout.
+            state, fr, health = rollout(sim.model, state, p_run, block, adjoint=Autodiff())
             fr = jax.device_get(fr)
-            part.check(fr, health)
+            sim.check(fr, health, frame_times=block)
             writer.append(fr, block)
             done += len(block)
             bar.update(float(block[-1]), done, done * sim.substeps, force=done == frames)

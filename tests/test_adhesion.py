@@ -35,8 +35,8 @@ def _run(adhesion):
     def com(s):
         return jnp.sum(s.mass * s.x[:, 1]) / jnp.sum(s.mass)
 
-    run = jax.jit(lambda s: jax.lax.fori_loop(
-        0, STEPS, lambda i, s: jaxfoam.substep(s, PARAMS, scene, grid, DT, colliders=(ceiling,)), s))
+    model = jaxfoam.Model(scene=scene, dt=DT, grid=grid, colliders=(ceiling,))
+    run = jax.jit(lambda s: jax.lax.fori_loop(0, STEPS, lambda i, s: jaxfoam.step(model, s, PARAMS), s))
     return float(com(st)), float(com(run(st)))
 
 

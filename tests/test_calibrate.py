@@ -446,7 +446,8 @@ def test_threaded_jacobian_columns_match_sequential_groups_and_finite_difference
     full = read_silhouettes(slump[0])
     data = dataclasses.replace(full, masks=full.masks[:3], times=full.times[:3], weights=full.weights[:3])
     problem = cal.build_problem(data, FitSettings(dx=FIT_DX, fixed={"mu": 150.0}, starts=1))
-    assert problem.jacobian_threads == cal.JACOBIAN_THREADS == 2
+    from jaxfoam._xla_cpu import XLA_CPU
+    assert problem.jacobian_threads == XLA_CPU.jacobian_threads == 2
     z = np.asarray(problem.transform.to_unconstrained({"sigma_y": 30.0, "eta": 4.0, "m": 0.7}))
     r, J = (np.asarray(a) for a in problem.residual_and_jacobian(z))
     assert J.shape == (r.shape[0], 3)

@@ -1,4 +1,4 @@
-"""Colliders written with selects (jaxfoam._mpm._pos_part, _neg_part, _clamp): the same values as
+"""Colliders written with selects (jaxfoam._boundary._pos_part, _neg_part, _clamp): the same values as
 jnp.maximum / jnp.minimum / jnp.clip, NaN passed through (so a blow-up is still reported), and
 derivatives that are 0 or 1 (no tie splitting)."""
 import jax
@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxfoam as jf
-from jaxfoam._mpm import _clamp, _neg_part, _pos_part
+from jaxfoam._boundary import _clamp, _neg_part, _pos_part
 
 VALUES = jnp.asarray([-np.inf, -3.5, -1e-300, -0.0, 0.0, 1e-300, 2.25, np.inf, np.nan])
 

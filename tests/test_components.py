@@ -1,10 +1,11 @@
-"""The rollout's working form (jaxfoam.to_components): what it keeps, and that it loses nothing."""
+"""The rollout's working form (jaxfoam._xla_cpu.layout.to_components): what it keeps, and that it loses nothing."""
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxfoam import from_components, make_state, to_components
+from jaxfoam import make_state
+from jaxfoam._xla_cpu.layout import from_components, to_components
 
 
 def _random_state(d, n=7, seed=0):

@@ -124,7 +124,7 @@ def test_loss_gradient_with_resampling_and_fracture_matches_central_differences(
         _RECORD.clear()
         r, J = problem.residual_and_jacobian(zz)
         r = np.asarray(r)
-        # Sorted: the Jacobian's column groups run in concurrent threads (calibrate.JACOBIAN_THREADS), so
+        # Sorted: the Jacobian's column groups run in concurrent threads (the tuning's jacobian_threads), so
         # their records interleave in any order; a flipped decision still changes the multiset.
         return 0.5 * float(r @ r), np.asarray(J).T @ r, sorted(_RECORD)
 

@@ -3,7 +3,7 @@
 With grid contact the floor's rule acts on the grid nodes at or below it, so a particle is held by the
 floor as soon as its B-spline stencil reaches those nodes: foam that lands comes to rest with its
 lowest particles 0.66-0.81 cells above the floor (measured, 2D, dx 2.3-4.7 mm; experiments/results/
-floor_contact.md), a gap that scales with dx. With particle contact (`jaxfoam._mpm.particle_floor`) each
+floor_contact.md), a gap that scales with dx. With particle contact (`jaxfoam._boundary.particle_floor`) each
 particle's extent, half its sampling spacing, is kept from crossing the floor, and the grid's rule only
 acts half a cell below it: landed foam rests with that extent on the floor at any dx. Both models apply
 Coulomb's law, and a block sliding on a floor decelerates at friction x g (measured 0.99-1.004x with
@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import jaxfoam as jf
-from jaxfoam._mpm import particle_floor
+from jaxfoam._boundary import particle_floor
 
 G = 9.81
 ELASTIC = jf.Params(mu=2000.0, sigma_y=1e4, eta=1.0, m=1.0, kappa=3000.0, rho=80.0)  # never yields here
@@ -89,7 +89,7 @@ def test_particle_contact_rollout_gradient_matches_central_differences():
         return jnp.mean(frames["x"][-1, :, 0])
 
     wrt = ("floor_friction", "mu")
-    rev = jf.observable_jacobian(sim, ELASTIC, mean_x, wrt, mode="rev")
+    rev = jf.observable_jacobian(sim, ELASTIC, mean_x, wrt, jf.HandWritten())
     for name, h in (("floor_friction", 1e-4), ("mu", 1e-1)):
         def at(delta):
             if name == "mu":

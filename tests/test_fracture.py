@@ -65,11 +65,13 @@ def _run(fracture):
 
     @jax.jit
     def run(s, scene):
+        model = jaxfoam.Model(scene=scene, dt=DT, grid=grid, fracture=fracture)
+
         def body(s, _):
             f = collider_force(s, PARAMS, scene, grid, DT, region=lambda nx: nx[:, 1] > 0.065)
             mb = jnp.where(bottom, s.mass, 0.0)
             com = jnp.sum(mb[:, None] * s.x, 0) / jnp.sum(mb)
-            return jaxfoam.substep(s, PARAMS, scene, grid, DT, fracture=fracture), (f[1], com[1])
+            return jaxfoam.step(model, s, PARAMS), (f[1], com[1])
         return jax.lax.scan(body, s, None, length=STEPS)
 
     return st, grid, run

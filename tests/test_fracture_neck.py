@@ -95,9 +95,11 @@ def pulls():
     grid = jaxfoam.make_grid(scene, DX)
 
     def runner(fracture):
+        model = jaxfoam.Model(scene=scene, dt=DT, grid=grid, fracture=fracture)
+
         def body(s, _):
             f = collider_force(s, PARAMS, scene, grid, DT, region=lambda nx: nx[:, 1] > Y1 + 0.0015)
-            return jaxfoam.substep(s, PARAMS, scene, grid, DT, fracture=fracture), f[1]
+            return jaxfoam.step(model, s, PARAMS), f[1]
         return jax.jit(lambda s: jax.lax.scan(body, s, None, length=STEPS)[1])
 
     plain, neck = runner(None), runner(FractureConfig(neck_thickness=H_BRIDGE))
@@ -145,9 +147,11 @@ def test_gradient_through_the_neck_criterion_matches_central_differences():
     cfg = FractureConfig(neck_thickness=H_BRIDGE)
     top = jnp.asarray(np.asarray(st.active) & (np.asarray(st.x[:, 1]) > Y1))
 
+    model = jaxfoam.Model(scene=scene, dt=DT, grid=grid, fracture=cfg)
+
     def height(mu):
         p = PARAMS.replace(mu=mu)
-        s = jax.lax.fori_loop(0, 40, lambda i, s: jaxfoam.substep(s, p, scene, grid, DT, fracture=cfg), st)
+        s = jax.lax.fori_loop(0, 40, lambda i, s: jaxfoam.step(model, s, p), st)
         return jnp.sum(jnp.where(top, s.x[:, 1], 0.0)) / jnp.sum(top)
 
     mu = jnp.asarray(PARAMS.mu)

@@ -1,10 +1,10 @@
-"""Fusion boundaries (jaxfoam._fusion): identities on values and derivatives, kept by XLA."""
+"""Fusion boundaries (jaxfoam._xla_cpu.fusion): identities on values and derivatives, kept by XLA."""
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxfoam._fusion import hoist, materialize_linearization, materialize_tangent
+from jaxfoam._xla_cpu.fusion import hoist, materialize_linearization, materialize_tangent
 
 
 def _grid_fn(x, t):

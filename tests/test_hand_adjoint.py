@@ -1,10 +1,10 @@
 """The hand-written reverse-mode derivatives of particle-to-grid and grid-to-particle
-(`jaxfoam._mpm._p2g_transfer`, `_g2p_transfer`), and particle-to-grid's hand-written forward-mode
-rule (`jaxfoam._mpm._p2g_impl`).
+(`jaxfoam._xla_cpu.transfers._p2g_transfer`, `_g2p_transfer`), and particle-to-grid's hand-written
+forward-mode rule (`jaxfoam._xla_cpu.transfers._p2g_impl`).
 
 Contract: the vector-Jacobian product of each transfer equals the transpose of the transfer's
 automatic derivative (to round-off), and central finite differences of the transfer (float64); a
-rollout differentiated in reverse mode with `hand_adjoint=True` gives the gradient that plain
+rollout differentiated in reverse mode with `adjoint=HandWritten()` gives the gradient that plain
 autodiff gives; forward mode through it is refused (a custom VJP has no JVP). The forward-mode rule
 of particle-to-grid equals autodiff's JVP of the same scatter, and its transpose autodiff's VJP.
 """
@@ -16,9 +16,13 @@ import numpy as np
 import pytest
 
 import jaxfoam as jf
-from jaxfoam._jacobian import CPU_COMPILER_OPTIONS
-from jaxfoam._mpm import (Grid, _flat_index, _g2p_impl, _g2p_transfer, _p2g_impl, _p2g_scatter, _p2g_transfer,
-                          _stencil)
+from jaxfoam._grid import Grid, _flat_index, _stencil
+from jaxfoam._xla_cpu import XLA_CPU
+from jaxfoam._xla_cpu.transfers import _g2p_impl, _g2p_transfer, _p2g_impl, _p2g_scatter, _p2g_transfer
+from jaxfoam.adjoint import HandWritten, checkpoint_blocks
+
+# The tuning the transfers run with (its buffer points on, as on the CPU backend).
+TUNING = XLA_CPU
 
 # The substep's start time the transfers' conds test (s); any finite value.
 T0 = 0.25
@@ -57,7 +61,7 @@ def _p2g_plain(grid, idx0):
 
 
 def _g2p_plain(grid, idx0):
-    return lambda x, grid_v: _g2p_impl(x, grid_v, grid, idx0, T0)
+    return lambda x, grid_v: _g2p_impl(x, grid_v, grid, idx0, T0, TUNING)
 
 
 def _rel(a, b):
@@ -72,7 +76,7 @@ def test_p2g_adjoint_equals_autodiff_transpose(d):
     idx0 = _idx0(x, grid)
     ct = jnp.asarray(rng.normal(size=(grid.num_nodes, d + 1)))
     _, vjp_ad = jax.vjp(_p2g_plain(grid, idx0), x, mvA, A, mass)
-    out, vjp_hand = jax.vjp(lambda *a: _joined(_p2g_transfer(grid, a[0], idx0, *a[1:], T0)), x, mvA, A, mass)
+    out, vjp_hand = jax.vjp(lambda *a: _joined(_p2g_transfer(grid, TUNING, a[0], idx0, *a[1:], T0)), x, mvA, A, mass)
     np.testing.assert_allclose(out, _p2g_plain(grid, idx0)(x, mvA, A, mass), rtol=0, atol=0)
     for name, a, b in zip(("x", "mv", "A", "mass"), vjp_hand(ct), vjp_ad(ct)):
         assert _rel(a, b) <= RTOL_AD, f"{name}: relative difference {_rel(a, b):.2e}"
@@ -112,7 +116,7 @@ def test_g2p_adjoint_equals_autodiff_transpose(d):
     ct = (jnp.asarray(rng.normal(size=(n, d))),
           tuple(tuple(jnp.asarray(rng.normal(size=n)) for _ in range(d)) for _ in range(d)))
     _, vjp_ad = jax.vjp(_g2p_plain(grid, idx0), x, grid_v)
-    _, vjp_hand = jax.vjp(lambda x_, g_: _g2p_transfer(grid, x_, g_, idx0, T0), x, grid_v)
+    _, vjp_hand = jax.vjp(lambda x_, g_: _g2p_transfer(grid, TUNING, x_, g_, idx0, T0), x, grid_v)
     for name, a, b in zip(("x", "grid_v"), vjp_hand(ct), vjp_ad(ct)):
         assert _rel(a, b) <= RTOL_AD, f"{name}: relative difference {_rel(a, b):.2e}"
 
@@ -132,7 +136,7 @@ def test_transfer_adjoints_match_central_differences(d):
     rng, grid, x, mvA, A, mass, grid_v = _setup(d, n=12, seed=1)
     idx0 = _idx0(x, grid)
     ct_grid = jnp.asarray(rng.normal(size=(grid.num_nodes, d + 1)))
-    p2g_scalar = lambda *a: jnp.vdot(ct_grid, _joined(_p2g_transfer(grid, a[0], idx0, *a[1:], T0)))
+    p2g_scalar = lambda *a: jnp.vdot(ct_grid, _joined(_p2g_transfer(grid, TUNING, a[0], idx0, *a[1:], T0)))
     args = (x, mvA, A, mass)
     grads = jax.grad(p2g_scalar, argnums=(0, 1, 2, 3))(*args)
     for k, name in enumerate(("x", "mv", "A", "mass")):
@@ -147,7 +151,7 @@ def test_transfer_adjoints_match_central_differences(d):
     cC = jnp.asarray(rng.normal(size=(n, d, d)))
 
     def g2p_scalar(x_, g_):
-        v, C = _g2p_transfer(grid, x_, g_, idx0, T0)
+        v, C = _g2p_transfer(grid, TUNING, x_, g_, idx0, T0)
         return jnp.vdot(cv, v) + sum(jnp.vdot(cC[:, i, j], C[i][j]) for i in range(d) for j in range(d))
 
     gx, gg = jax.grad(g2p_scalar, argnums=(0, 1))(x, grid_v)
@@ -181,13 +185,14 @@ def test_rollout_gradient_same_with_hand_adjoint():
     def loss(params, x0, amplitude, hand):
         plate = dataclasses.replace(sim.scene.plates[0], amplitude=amplitude)
         scene_ = dataclasses.replace(sim.scene, plates=(plate,))
-        fr = sim.rollout(params, state0=sim.state0.replace(x=x0), scene=scene_, hand_adjoint=hand)[1]
+        adjoint = HandWritten() if hand else jf.Checkpointed()
+        fr = sim.rollout(params, state0=sim.state0.replace(x=x0), scene=scene_, adjoint=adjoint)[1]
         w = fr["active"].astype(fr["x"].dtype)
         return jnp.sum(jnp.sin(40.0 * fr["x"]) * w[..., None]) + jnp.sum(fr["s"] * w) * 1e-3
 
     amp = jnp.asarray(sim.scene.plates[0].amplitude)
-    grad = jax.jit(jax.grad(loss, argnums=(0, 1, 2)), static_argnums=3, compiler_options=CPU_COMPILER_OPTIONS
-                   if jax.default_backend() == "cpu" else None)
+    grad = jax.jit(jax.grad(loss, argnums=(0, 1, 2)), static_argnums=3,
+                   compiler_options=dict(sim.model.tuning.compiler_options) or None)
     grads = {hand: grad(PARAMS, sim.state0.x, amp, hand) for hand in (False, True)}
     ref, got = grads[False], grads[True]
     for name in ("mu", "sigma_y", "eta", "m", "kappa"):
@@ -201,7 +206,8 @@ def test_forward_mode_refused_with_hand_adjoint():
     """The hand-written adjoints are reverse-mode only: jvp through such a rollout raises a TypeError
     (and the default rollout stays forward-differentiable)."""
     sim = jf.Simulator(jf.load_scene(SCENE_2D), [0.005], PARAMS, dx=0.02, substeps=2)
-    f = lambda mu, hand: jnp.sum(sim.rollout(PARAMS.replace(mu=mu), hand_adjoint=hand)[0].x)
+    f = lambda mu, hand: jnp.sum(sim.rollout(PARAMS.replace(mu=mu), adjoint=HandWritten() if hand
+                                             else jf.Checkpointed())[0].x)
     _, t = jax.jvp(lambda mu: f(mu, False), (200.0,), (1.0,))
     assert np.isfinite(float(t))
     with pytest.raises(TypeError, match="custom_vjp"):
@@ -209,7 +215,7 @@ def test_forward_mode_refused_with_hand_adjoint():
 
 
 def test_reverse_jacobian_of_vector_observable():
-    """observable_jacobian(mode="rev") of a per-frame observable (T,): each row equals forward mode's
+    """observable_jacobian(adjoint=HandWritten()) of a per-frame observable (T,): each row equals forward mode's
     (relative 1e-9), and a Jacobian w.r.t. the initial positions has shape (T, N, d) whose last row is
     the gradient of the last frame's value alone."""
     sim = jf.Simulator(jf.load_scene(SCENE_2D), [0.01, 0.02], PARAMS, dx=0.02, substeps=10)
@@ -219,14 +225,14 @@ def test_reverse_jacobian_of_vector_observable():
         return jnp.sum(fr["x"][:, :, 1] * w, axis=1) / jnp.sum(w, axis=1)
 
     wrt = ("mu", "sigma_y", "plate0.amplitude")
-    rev = jf.observable_jacobian(sim, PARAMS, heights, wrt, mode="rev")
-    fwd = jf.observable_jacobian(sim, PARAMS, heights, wrt, mode="fwd")
+    rev = jf.observable_jacobian(sim, PARAMS, heights, wrt, HandWritten())
+    fwd = jf.observable_jacobian(sim, PARAMS, heights, wrt, jf.ForwardMode())
     for name in wrt:
         assert rev.jacobian[name].shape == (2,)
         np.testing.assert_allclose(rev.jacobian[name], fwd.jacobian[name], rtol=1e-9, err_msg=name)
-    jx = jf.observable_jacobian(sim, PARAMS, heights, ("state0.x",), mode="rev").jacobian["state0.x"]
+    jx = jf.observable_jacobian(sim, PARAMS, heights, ("state0.x",), HandWritten()).jacobian["state0.x"]
     assert jx.shape == (2,) + sim.state0.x.shape
-    last = jf.observable_jacobian(sim, PARAMS, lambda fr: heights(fr)[-1], ("state0.x",), mode="rev")
+    last = jf.observable_jacobian(sim, PARAMS, lambda fr: heights(fr)[-1], ("state0.x",), HandWritten())
     assert last.jacobian["state0.x"].shape == sim.state0.x.shape
     assert _rel(jx[-1], last.jacobian["state0.x"]) <= 1e-12
 
@@ -235,14 +241,9 @@ def test_frame_checkpoint_blocks_same_gradient_less_memory():
     """A frame store above `frame_tape_bytes` splits each frame's substeps into checkpointed blocks
     (here 10 substeps -> 4 blocks of 3, 3, 3 and 1): the reverse-mode gradient is the same to 1e-12
     and the compiled program's working memory is smaller; the block count follows the budget."""
-    from jaxfoam._jacobian import make_observable_jacobian
-    from jaxfoam._simulate import checkpoint_blocks
-
     scene = jf.load_scene(SCENE_2D)
-    sims = {b: jf.Simulator(scene, [0.01, 0.02], PARAMS, dx=0.01, substeps=10, frame_tape_bytes=b)
-            for b in (2.0 ** 40, 1.0)}
-    big, tiny = sims[2.0 ** 40], sims[1.0]
-    assert (big.checkpoint_blocks, tiny.checkpoint_blocks) == (1, 4)
+    big = jf.Simulator(scene, [0.01, 0.02], PARAMS, dx=0.01, substeps=10)
+    assert (checkpoint_blocks(big.state0, big.grid, 10, 2.0 ** 40), checkpoint_blocks(big.state0, big.grid, 10, 1.0)) == (1, 4)
     # A budget far below the store: the cap ceil(sqrt(substeps)); a store that fits: one level.
     assert checkpoint_blocks(big.state0, big.grid, 100, 10.0) == 10
     assert checkpoint_blocks(big.state0, big.grid, 10, 2.0 ** 40) == 1
@@ -251,7 +252,8 @@ def test_frame_checkpoint_blocks_same_gradient_less_memory():
         w = fr["active"].astype(fr["x"].dtype)
         return jnp.sum(fr["x"][:, :, 1] * w) / jnp.sum(w)
 
-    fns = {k: make_observable_jacobian(s, loss, ("mu", "sigma_y", "eta", "m"), mode="rev") for k, s in sims.items()}
+    fns = {k: jf.make_observable_jacobian(big, loss, ("mu", "sigma_y", "eta", "m"), HandWritten(frame_tape_bytes=k))
+           for k in (2.0 ** 40, 1.0)}
     out = {k: f(PARAMS) for k, f in fns.items()}
     for name in ("mu", "sigma_y", "eta", "m"):
         a, b = float(out[1.0].jacobian[name]), float(out[2.0 ** 40].jacobian[name])
@@ -259,4 +261,4 @@ def test_frame_checkpoint_blocks_same_gradient_less_memory():
     temp = {k: f.lower(PARAMS).compile().memory_analysis().temp_size_in_bytes for k, f in fns.items()}
     assert temp[1.0] < 0.8 * temp[2.0 ** 40], temp
     with pytest.raises(ValueError, match="frame_tape_bytes"):
-        jf.Simulator(scene, [0.01], PARAMS, dx=0.01, frame_tape_bytes=0)
+        HandWritten(frame_tape_bytes=0)

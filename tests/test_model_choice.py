@@ -14,7 +14,7 @@ import numpy as np
 
 from jaxfoam import Params, calibrate
 from jaxfoam._scene import init_state
-from jaxfoam._simulate import stable_dt
+from jaxfoam import stable_dt
 from jaxfoam.synth import synthesize
 
 MODEL_CHOICE = Path(__file__).resolve().parents[1] / "experiments" / "MODEL_CHOICE.md"

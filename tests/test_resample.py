@@ -186,7 +186,7 @@ def test_gradient_with_resampling_and_fracture_matches_finite_differences():
                             resample=R.ResampleConfig(every=10), fracture=FractureConfig())
 
     def observable(mu):
-        final, _, health = sim.rollout(params.replace(mu=mu), checkpoint=False)
+        final, _, health = sim.rollout(params.replace(mu=mu), adjoint=jaxfoam.Autodiff())
         m = final.mass * final.active
         return jnp.sum(m * final.x[:, 1]) / jnp.sum(m), (jnp.sum(final.active), health[0])
 

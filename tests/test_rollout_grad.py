@@ -68,7 +68,7 @@ def sim():
 @pytest.fixture(scope="module")
 def rev(sim):
     """Value and gradient by reverse mode through the per-frame checkpoints."""
-    return jf.observable_jacobian(sim, PARAMS, mean_height, WRT, mode="rev")
+    return jf.observable_jacobian(sim, PARAMS, mean_height, WRT, jf.HandWritten())
 
 
 @pytest.fixture(scope="module")
@@ -80,7 +80,7 @@ def forward(sim):
         active = frames["active"][-1]
         frac = jnp.sum((frames["gamma_dot"][-1] > 0) & active) / jnp.sum(active)
         return mean_height(frames), frac, health
-    return jax.jit(run, compiler_options=jf._jacobian.CPU_COMPILER_OPTIONS)
+    return jax.jit(run, compiler_options=dict(sim.model.tuning.compiler_options) or None)
 
 
 def _perturbed(sim, name, value):
@@ -147,7 +147,7 @@ def forward_inputs(sim):
     """The plain rollout's mean height as a function of (params, state0, scene), compiled once."""
     def run(p, s0, sc):
         return mean_height(sim.rollout(p, state0=s0, scene=sc)[1])
-    return jax.jit(run, compiler_options=jf._jacobian.CPU_COMPILER_OPTIONS)
+    return jax.jit(run, compiler_options=dict(sim.model.tuning.compiler_options) or None)
 
 
 def _along(sim, name, h):
@@ -179,8 +179,8 @@ def test_kappa_density_gravity_and_initial_state_gradients_match_central_differe
     mode equals the central difference to 1e-4 relative, as for the fitted parameters; forward mode
     agrees with reverse mode to 1e-8."""
     names = tuple(OTHER_DIRECTIONS)
-    rev = jf.observable_jacobian(sim, PARAMS, mean_height, names, mode="rev")
-    fwd = jf.observable_jacobian(sim, PARAMS, mean_height, ("kappa", "rho", "gravity"), mode="fwd")
+    rev = jf.observable_jacobian(sim, PARAMS, mean_height, names, jf.HandWritten())
+    fwd = jf.observable_jacobian(sim, PARAMS, mean_height, ("kappa", "rho", "gravity"), jf.ForwardMode())
     for name in names:
         _, step, change = OTHER_DIRECTIONS[name]
 
@@ -201,7 +201,7 @@ def test_kappa_density_gravity_and_initial_state_gradients_match_central_differe
 
 def test_checkpointed_and_plain_reverse_agree(sim, rev):
     """Per-frame rematerialization recomputes the same operations: same gradient to round-off."""
-    plain = jf.observable_jacobian(sim, PARAMS, mean_height, WRT, mode="rev", checkpoint=False)
+    plain = jf.observable_jacobian(sim, PARAMS, mean_height, WRT, jf.Autodiff())
     for name in WRT:
         a, b = float(rev.jacobian[name]), float(plain.jacobian[name])
         assert abs(a - b) <= 1e-10 * abs(a), f"{name}: checkpointed {a} vs plain tape {b}"
@@ -221,12 +221,12 @@ def test_long_rollout_gradient_through_checkpoints():
     assert long_sim.total_substeps == 2000
     planned, rev_fns = {}, {}
     for ck in (True, False):
-        rev_fns[ck] = jf._jacobian.make_observable_jacobian(long_sim, mean_height, WRT, "rev", checkpoint=ck)
+        rev_fns[ck] = jf.make_observable_jacobian(long_sim, mean_height, WRT, jf.HandWritten() if ck else jf.Autodiff())
         mem = rev_fns[ck].lower(PARAMS).compile().memory_analysis()
         planned[ck] = mem.temp_size_in_bytes + mem.argument_size_in_bytes + mem.output_size_in_bytes
     assert planned[False] > 20 * planned[True], planned
     r = rev_fns[True](PARAMS)  # compiled above: served from the compilation cache
-    f = jf.observable_jacobian(long_sim, PARAMS, mean_height, WRT, mode="fwd")
+    f = jf.observable_jacobian(long_sim, PARAMS, mean_height, WRT, jf.ForwardMode())
     long_sim.check({}, r.health)
     assert float(f.value) == pytest.approx(float(r.value), rel=1e-13)
     for name in WRT:
@@ -252,7 +252,8 @@ def test_float32_derivatives_match_float64(sim, rev, mode):
     assert sim32.dt == sim.dt
     state0 = jax.tree_util.tree_map(
         lambda a: a.astype(jnp.float32) if jnp.issubdtype(a.dtype, jnp.floating) else a, sim.state0)
-    r32 = jf.observable_jacobian(sim32, PARAMS, mean_height, WRT, mode=mode, state0=state0)
+    adjoint = jf.ForwardMode() if mode == "fwd" else jf.HandWritten()
+    r32 = jf.observable_jacobian(sim32, PARAMS, mean_height, WRT, adjoint, state0=state0)
     assert float(r32.value) == pytest.approx(float(rev.value), rel=1e-6)
     for name in WRT:
         a, b = float(rev.jacobian[name]), float(r32.jacobian[name])
@@ -261,13 +262,13 @@ def test_float32_derivatives_match_float64(sim, rev, mode):
 
 
 def test_forward_mode_tangent_routes_agree(sim):
-    """Forward mode by one jvp rollout per scalar input (tangents="map", the 3D default) gives the same
-    per-frame Jacobian as jacfwd's batched tangents (tangents="vmap", the 2D default), for scalar
+    """Forward mode by one jvp rollout per scalar input (tangents="map", the default, in two threads) gives
+    the same per-frame Jacobian as jacfwd's batched tangents (tangents="vmap"), for scalar
     inputs and a vector one (gravity, whose columns must land in the right input slots)."""
     obs = lambda fr: jnp.mean(fr["x"][:, :, 1], axis=1)  # (T,) m
     wrt = ("mu", "plate0.amplitude", "gravity")
-    a = jf.observable_jacobian(sim, PARAMS, obs, wrt, mode="fwd", tangents="vmap")
-    b = jf.observable_jacobian(sim, PARAMS, obs, wrt, mode="fwd", tangents="map")
+    a = jf.observable_jacobian(sim, PARAMS, obs, wrt, jf.ForwardMode("vmap"))
+    b = jf.observable_jacobian(sim, PARAMS, obs, wrt, jf.ForwardMode("map", threads=2))
     np.testing.assert_array_equal(np.asarray(a.value), np.asarray(b.value))
     for name in wrt:
         ja, jb = np.asarray(a.jacobian[name]), np.asarray(b.jacobian[name])
@@ -276,17 +277,23 @@ def test_forward_mode_tangent_routes_agree(sim):
     assert np.any(np.asarray(a.jacobian["gravity"])[:, 1] != 0.0)  # the vertical column is non-trivial
 
 
-def test_forward_mode_route_defaults_per_dimension(sim):
-    from jaxfoam._jacobian import FWD_TANGENTS, make_observable_jacobian
-    assert make_observable_jacobian(sim, mean_height).tangents == FWD_TANGENTS[2] == "vmap"
+def test_forward_mode_route_default_is_one_for_every_dimension(sim):
+    """One Jacobian default (jaxfoam.adjoint.DEFAULT_JACOBIAN) for 2D and 3D, the fitter's too: one jvp
+    rollout per input, in the CPU tuning's two threads; a reverse-mode adjoint runs in one program."""
+    from jaxfoam._jacobian import make_observable_jacobian
+    from jaxfoam.adjoint import DEFAULT_JACOBIAN
+    assert DEFAULT_JACOBIAN == jf.ForwardMode("map")
+    f2 = make_observable_jacobian(sim, mean_height)
+    assert f2.adjoint == DEFAULT_JACOBIAN and f2.threads == (2 if jax.default_backend() == "cpu" else 1)
     spec = dict(SCENE, dim=3, gravity=[0.0, -9.81, 0.0],
                 domain={"min": [-0.06, 0.0, -0.03], "max": [0.06, 0.12, 0.03]},
                 plate=dict(SCENE["plate"], center=[0.0, 0.1025, 0.0], half_size=[0.045, 0.005, 0.02],
                            motion=dict(SCENE["plate"]["motion"], axis=[1.0, 0.0, 0.0])),
                 initial_shape={"type": "box", "min": [-0.02, 0.07, -0.01], "max": [0.02, 0.1, 0.01]})
     sim3 = jf.Simulator(jf.load_scene(spec), [FRAME_DT], PARAMS, dx=0.01)
-    assert make_observable_jacobian(sim3, mean_height).tangents == FWD_TANGENTS[3] == "map"
-    assert make_observable_jacobian(sim3, mean_height, mode="rev").tangents is None
+    f3 = make_observable_jacobian(sim3, mean_height)
+    assert f3.adjoint == DEFAULT_JACOBIAN and f3.threads == f2.threads
+    assert make_observable_jacobian(sim3, mean_height, adjoint=jf.HandWritten()).threads == 1
 
 
 def test_simulate_is_differentiable(sim, rev):
@@ -304,7 +311,7 @@ def test_simulate_is_differentiable(sim, rev):
     for name in ("mu", "sigma_y", "eta", "m"):
         a, b = float(rev.jacobian[name]), float(getattr(g, name))
         assert abs(b - a) <= 1e-10 * abs(a), f"{name}: simulate grad {b} vs rollout {a}"
-    other = jf.observable_jacobian(sim, PARAMS, mean_height, ("kappa", "rho"), mode="fwd")
+    other = jf.observable_jacobian(sim, PARAMS, mean_height, ("kappa", "rho"), jf.ForwardMode())
     for name in ("kappa", "rho"):
         a, b = float(other.jacobian[name]), float(getattr(g, name))
         assert a != 0.0 and abs(b - a) <= 1e-10 * abs(a), f"{name}: simulate grad {b} vs rollout {a}"
@@ -321,7 +328,7 @@ def test_wrt_validation(sim):
         jf.observable_jacobian(sim, PARAMS, mean_height, ("plate1.amplitude",))
     with pytest.raises(ValueError, match="unknown"):
         jf.observable_jacobian(sim, PARAMS, mean_height, ("viscosity",))
-    with pytest.raises(ValueError, match="mode"):
-        jf.observable_jacobian(sim, PARAMS, mean_height, ("mu",), mode="central")
+    with pytest.raises(ValueError, match="adjoint"):
+        jf.observable_jacobian(sim, PARAMS, mean_height, ("mu",), adjoint="central")
     with pytest.raises(ValueError, match="tangents"):
-        jf.observable_jacobian(sim, PARAMS, mean_height, ("mu",), tangents="batched")
+        jf.observable_jacobian(sim, PARAMS, mean_height, ("mu",), jf.ForwardMode(tangents="batched"))

@@ -1,4 +1,4 @@
-"""Reordering particles by grid cell (jaxfoam.sort_by_cell) is a pure permutation of the slots.
+"""Reordering particles by grid cell (jaxfoam._xla_cpu.layout.sort_by_cell, Tuning.sort_by_cell) is a pure permutation of the slots.
 
 The MPM sums are order-independent up to floating-point association, so a rollout that sorts the
 particles at the start of every frame and restores their order at its end must give the same
@@ -8,8 +8,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxfoam import Params, Simulator, load_scene, make_grid, sort_by_cell, substep, to_components, unsort
-from jaxfoam._mpm import _flat_index, _stencil
+from jaxfoam import Params, Simulator, load_scene, make_grid, step
+from jaxfoam._grid import _flat_index, _stencil
+from jaxfoam._xla_cpu.layout import sort_by_cell, to_components, unsort
 
 # Shear and bulk modulus Pa, yield stress Pa, consistency Pa s^m, flow index, density kg/m^3.
 PARAMS = Params(mu=300.0, kappa=3000.0, sigma_y=20.0, eta=5.0, m=0.6, rho=80.0)
@@ -89,7 +90,7 @@ def test_sorted_substeps_have_same_gradient():
         s = to_components(sim.state0)
         if sort:
             s, perm = sort_by_cell(s, grid)
-        s = jax.lax.scan(lambda c, _: (substep(c, params, sim.scene, grid, sim.dt), None), s, None, length=40)[0]
+        s = jax.lax.scan(lambda c, _: (step(sim.model, c, params), None), s, None, length=40)[0]
         if sort:
             s = unsort(s, perm)
         # Slot-dependent weights: a wrong restore of the order changes value and gradient.

@@ -252,21 +252,17 @@ SCENE_SUBSTEPS = 3
 def test_example_scene_loads_and_runs(path):
     import jax
 
-    from jaxfoam._simulate import speed_bound
-
     spec = json.loads(path.read_text())
     scene = jaxfoam.load_scene(path)
     dx = TINY_DX[scene.dim]
     params = jaxfoam.Params(mu=cli.DEFAULT_MU, kappa=scene.kappa, sigma_y=cli.DEFAULT_SIGMA_Y, eta=cli.DEFAULT_ETA,
                             m=cli.DEFAULT_M, rho=scene.density)
-    state = jaxfoam.init_state(scene, dx)
-    grid = jaxfoam.make_grid(scene, dx)
-    dt = jaxfoam.stable_dt(params, dx, speed_bound(scene))
-    step = jax.jit(jaxfoam.substep, static_argnums=3).lower(state, params, scene, grid, dt).compile(
-        compiler_options=FAST_COMPILE)
+    model = jaxfoam.make_model(scene, dx, params_ref=params)
+    state = model.sample()
+    step = jax.jit(jaxfoam.step).lower(model, state, params).compile(compiler_options=FAST_COMPILE)
     x0 = np.asarray(state.x)
     for _ in range(SCENE_SUBSTEPS):
-        state = step(state, params, scene, dt)
+        state = step(model, state, params)
     x, v, active = np.asarray(state.x), np.asarray(state.v), np.asarray(state.active)
     assert active.sum() > 20
     for name in ("x", "v", "F", "bbar_e"):
@@ -276,7 +272,7 @@ def test_example_scene_loads_and_runs(path):
     if scene.kind == "drop":
         # Nothing touches the blob yet: momentum balance gives a centre-of-mass velocity v0 + g t
         # (equal particle masses, so the mean velocity).
-        t = SCENE_SUBSTEPS * dt
+        t = SCENE_SUBSTEPS * model.dt
         np.testing.assert_allclose(v[active].mean(axis=0),
                                    np.asarray(spec["initial_velocity"]) + np.asarray(scene.gravity) * t,
                                    rtol=0, atol=1e-9)
