@@ -9,6 +9,8 @@ m 0.5) over FRAMES frames (FRAME_DT s apart, CFL substeps in between), float64:
   jacfwd   the (T, 4) Jacobian of the per-frame heights, forward mode: in 2D the tangents batched by
            jax.jacfwd (`ForwardMode("vmap")`), in 3D one jvp per parameter in sequence
            (`ForwardMode("map", threads=1)`);
+  jacobian the same Jacobian by the default route (`jaxfoam.adjoint.DEFAULT_JACOBIAN`: one jvp per
+           parameter, in the tuning's concurrent column groups);
   reverse, no checkpoint (run on the coarse 2D grid only): the same gradient with the plain scan
            tape, as a reference for what checkpointing saves; on the other grids it is compiled but
            not run, and the buffers its program plans (gigabytes on the fine grid) are listed.
@@ -63,7 +65,7 @@ QUICK = dict(dxs=(0.01,), frames=3, repeats=2, runs=1)
 # about 3 s per frame's worth of substeps on this machine.
 FULL_3D = dict(dxs=(0.01,), frames=5, repeats=5, runs=3)
 QUICK_3D = dict(dxs=(0.02,), frames=2, repeats=2, runs=1)
-MODES = ("forward", "reverse", "jacfwd", "reverse_nockpt")
+MODES = ("forward", "reverse", "jacfwd", "jacobian", "reverse_nockpt")
 JACFWD_ROUTE = {2: "the 4 tangents batched, ForwardMode('vmap')",
                 3: "one jvp rollout per parameter in sequence, ForwardMode('map', threads=1)"}
 
@@ -99,6 +101,8 @@ def _build(dx, frames, dim=2):
         "reverse": jf.make_observable_jacobian(sim, loss, adjoint=HandWritten()),
         "jacfwd": jf.make_observable_jacobian(
             sim, heights, adjoint=ForwardMode("vmap") if dim == 2 else ForwardMode("map", threads=1)),
+        # The default Jacobian route of observable_jacobian and the fitter (DEFAULT_JACOBIAN).
+        "jacobian": jf.make_observable_jacobian(sim, heights),
         "reverse_nockpt": jf.make_observable_jacobian(sim, loss, adjoint=Autodiff()),
     }
     return sim, params, calls
@@ -186,7 +190,7 @@ def _run_worker(args, cache_dir, one_core=False):
 def _modes_for(dx, dxs, dim=2):
     # The plain-scan tape runs only on the coarse 2D grid: on the fine grid and in 3D it needs gigabytes
     # (elsewhere only its compiled program's planned memory is reported, `worker_plan`).
-    return MODES if dx == max(dxs) and dim == 2 else MODES[:3]
+    return MODES if dx == max(dxs) and dim == 2 else tuple(m for m in MODES if m != "reverse_nockpt")
 
 
 def _ratios(run, m):
@@ -296,12 +300,13 @@ def main(argv=None):
             f"{FRAME_DT} s apart, CFL substeps. forward = rollout + per-frame mean height (T,); reverse = "
             f"value and gradient of its mean w.r.t. (mu, sigma_y, eta, m) through per-frame checkpoints; "
             f"jacfwd = the (T, 4) Jacobian in forward mode "
-            f"({JACFWD_ROUTE[dim]}); "
+            f"({JACFWD_ROUTE[dim]}); jacobian = the same by the default route (DEFAULT_JACOBIAN: one jvp "
+            f"rollout per parameter, in the tuning's 2 concurrent column groups); "
             f"reverse_nockpt = reverse mode with the plain "
             f"scan tape (run on the coarse 2D grid only; elsewhere compiled, and its planned buffers "
             f"listed). The forward call is compiled with XLA's default options, as "
-            f"`jaxfoam.simulate` runs it; the three gradient calls with the gradient helper's "
-            f"(the tuning's compiler options: {dict(tuning_for().compiler_options)}). Times: medians of {cfg['repeats']} interleaved repeats in one "
+            f"`jaxfoam.simulate` runs it; the gradient calls with the tuning's compiler options "
+            f"({dict(tuning_for().compiler_options)}). Times: medians of {cfg['repeats']} interleaved repeats in one "
             f"process, wall clock and process CPU time, in {cfg['runs']} such process(es) per grid (each "
             f"compiles afresh; the ratios and times listed are medians over them, and `per run` lists each "
             f"process's ratio: the machine is shared). Memory, each call in a fresh process: XLA buffers = temp + argument + "

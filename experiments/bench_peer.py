@@ -126,7 +126,7 @@ def make_taichi_toy(threads: int = 2):
 
 def make_jaxfoam():
     scene, state, params, grid, dt = bench_step.make_case(2, N_PARTICLES, CELLS, jnp.float32)
-    rollout = bench_step.make_rollout(scene, grid, dt, HB_STEPS, True)
+    rollout = bench_step.make_rollout(scene, grid, dt, HB_STEPS, True, jnp.float32)
 
     def run():
         out = rollout(state, params)

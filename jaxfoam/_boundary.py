@@ -174,7 +174,7 @@ def apply_colliders(v, node_x, scene: Scene, t, colliders=(), grid_m=None, dt=No
         particle = scene.particle_contact_floor
         if particle:
             if touch is None:
-                raise ValueError("a floor with particle contact needs `touch` (jaxfoam._mpm.floor_touch)")
+                raise ValueError("a floor with particle contact needs `touch` (jaxfoam._boundary.floor_touch)")
             spacing = grid.dx if grid is not None else dx
             if spacing is None:
                 raise ValueError("a floor with particle contact needs the grid spacing dx")

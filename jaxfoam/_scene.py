@@ -28,7 +28,7 @@ SHAPE_KEYS = {"first_mask": {"type"}, "box": {"type", "min", "max"}, "ellipse": 
 FLOOR_KEYS = {"y", "friction", "contact"}
 # Floor contact models (docs/data.md): "grid" applies the floor's rule to the grid nodes at or below it
 # (the material then rests up to about a cell above a floor it lands on); "particle" applies it to
-# each particle's extent (jaxfoam._mpm.particle_floor), so a landed foam's edge lies on the floor.
+# each particle's extent (jaxfoam._boundary.particle_floor), so a landed foam's edge lies on the floor.
 FLOOR_CONTACTS = ("grid", "particle")
 
 # Particles per cell: 2 per axis is the MPM standard (Stomakhin 2013), enough to keep every cell
@@ -124,7 +124,7 @@ class Scene:
 
     @property
     def particle_contact_floor(self) -> bool:
-        """Whether the scene has a floor with particle contact (`jaxfoam._mpm.particle_floor`)."""
+        """Whether the scene has a floor with particle contact (`jaxfoam._boundary.particle_floor`)."""
         return self.floor_y is not None and self.floor_contact == "particle"
 
     def max_plate_speed(self) -> float:
