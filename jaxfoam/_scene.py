@@ -329,7 +329,7 @@ def _read_spec(scene) -> dict:
     text = os.fspath(scene) if isinstance(scene, os.PathLike) else scene
     if not isinstance(text, str):
         raise SceneError(f"scene: expected a dict, JSON text or a file path, got {type(scene).__name__}")
-    if isinstance(scene, os.PathLike) or os.path.isfile(text):
+    if isinstance(scene, os.PathLike) or os.path.exists(text):
         try:
             with open(text, encoding="utf-8") as fh:
                 body = fh.read()

@@ -158,16 +158,16 @@ def synthesize(scene: Scene | dict | str, params: dict, dx: float | None = None,
         raise ValueError(f"dx must be a positive grid spacing in m, got {dx!r}")
     if not (0 < cfl <= 1):
         raise ValueError(f"cfl must be in (0, 1], got {cfl!r}")
-    camera, shape = camera_covering(scene, pixel_size)
-    if shape[0] * shape[1] > MAX_IMAGE_PIXELS:
-        raise ValueError(f"pixel_size {pixel_size:g} m makes {shape[0]}x{shape[1]} pixel images of the domain, over "
-                         f"{MAX_IMAGE_PIXELS:,} pixels: the pixel size is in m (not mm or um)")
     times = np.linspace(0.0, float(duration), frames)
     dtype_name = jnp.dtype(dtype).name
     check_dtype_range(dict(params), dtype_name)
     estimate = estimate_particles(scene, dx, ppc)
     if estimate is not None:
         check_particles(estimate, d, jnp.dtype(dtype).itemsize, max_particles, dx=dx, ppc=ppc)
+    camera, shape = camera_covering(scene, pixel_size)
+    if shape[0] * shape[1] > MAX_IMAGE_PIXELS:
+        raise ValueError(f"pixel_size {pixel_size:g} m makes {shape[0]}x{shape[1]} pixel images of the domain, over "
+                         f"{MAX_IMAGE_PIXELS:,} pixels: the pixel size is in m (not mm or um)")
     per_frame = substeps_per_frame(scene, p, dx, cfl, times[1:])
     check_substeps(per_frame, frames - 1, max_substeps, span=float(duration), dt=float(times[1]) / per_frame)
 
