@@ -443,3 +443,16 @@ def test_every_api_case_is_listed(files):
 
 def test_suite_has_at_least_100_cases():
     assert len(CLI_CASES) + len(BAD_SCENES) + len(API_NAMES) >= 100
+
+
+def test_a_missing_output_directory_is_created_by_every_command(files, tmp_path, capsys):
+    """One rule for every command: the output's parent directories are created (render shown here; simulate,
+    synth, track and fit check their outputs with the same `check_output`)."""
+    from jaxfoam._guards import check_output
+
+    out = tmp_path / "new" / "deeper" / "sheet.png"
+    assert cli.main(["render", str(files["traj"]), "--out", str(out), "--panels", "2"]) == 0
+    assert out.stat().st_size > 1000
+    assert [p.name for p in out.parent.iterdir()] == ["sheet.png"]  # no temporary file left beside it
+    assert check_output(tmp_path / "a" / "b" / "x.h5") == str(tmp_path / "a" / "b" / "x.h5")
+    assert (tmp_path / "a" / "b").is_dir()
