@@ -424,12 +424,20 @@ def main(argv=None) -> int:
     from ._simulate import SimulationError
 
     parser = build_parser()
+    as_command = argv is None
     args = parser.parse_args(argv)
     prog = f"jaxfoam {args.command}"
     previous = warnings.showwarning
     warnings.showwarning = _show_warning(args.command)
     try:
-        return int(args.func(args) or 0)
+        code = int(args.func(args) or 0)
+        if as_command and code == 143:
+            # A SIGTERM that interrupted a compilation leaves JAX in a state whose interpreter teardown
+            # can crash (exit -11): the fit log is closed by now, so end the process at once.
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(143)
+        return code
     except SimulationError as exc:
         sys.stderr.write(f"\n{prog}: simulation failed: {exc}\n")
         return 1

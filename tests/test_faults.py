@@ -168,3 +168,26 @@ def test_killed_simulate_leaves_the_previous_output_and_an_incomplete_partial(tm
     assert len(partial) == 1
     with h5py.File(partial[0], "r") as f:
         assert not f.attrs["complete"] and f["times"].shape[0] >= 1
+
+
+def test_sigterm_while_the_first_evaluation_compiles_exits_143_and_resumes(data, tmp_path):
+    d, path, ref, _ = data
+    out = tmp_path / "fit.json"
+    proc = subprocess.Popen(jaxfoam_cmd("fit", path, "--out", out, *FIT_ARGS), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=ENV, cwd=tmp_path)
+    try:
+        for line in proc.stdout:  # the problem is bound; the first evaluation (and its compilation) follows
+            if line.startswith("fit: "):
+                break
+        time.sleep(2.0)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=600)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 143, (proc.returncode, err[-2000:])
+    assert "terminated" in err and "--resume" in err
+    res = run("fit", path, "--out", out, "--resume", *FIT_ARGS, cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    fit = json.loads(out.read_text())
+    np.testing.assert_allclose(fit["loss_history"], ref["loss_history"], rtol=1e-10, atol=0)
