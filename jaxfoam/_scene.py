@@ -34,6 +34,8 @@ FLOOR_CONTACTS = ("grid", "particle")
 # Particles per cell: 2 per axis is the MPM standard (Stomakhin 2013), enough to keep every cell
 # of the material covered under moderate stretch.
 DEFAULT_PPC = {2: 4, 3: 8}
+# Sample points drawn over the whole domain at most (the sampling work arrays grow with their number).
+MAX_CANDIDATES = 50_000_000
 
 
 class SceneError(ValueError):
@@ -507,8 +509,10 @@ def sample_particles(scene: Scene, dx: float, ppc: int | None = None, seed: int 
     rng = np.random.default_rng(seed)
     lo, hi = np.asarray(scene.domain_min), np.asarray(scene.domain_max)
     ncell = np.ceil((hi - lo) / dx).astype(int)
-    if np.prod(ncell) * ppc > 50_000_000:
-        raise ValueError(f"dx = {dx} m gives {np.prod(ncell)} cells: too fine for this domain")
+    if np.prod(ncell) * ppc > MAX_CANDIDATES:
+        raise ValueError(f"dx = {dx:g} m and ppc = {ppc} give {int(np.prod(ncell)):,} cells x {ppc} = "
+                         f"{int(np.prod(ncell)) * ppc:,} sample points over the domain, more than {MAX_CANDIDATES:,}: "
+                         f"use a coarser dx or fewer particles per cell")
     cells = np.stack(np.meshgrid(*[np.arange(n) for n in ncell], indexing="ij"), -1).reshape(-1, d)
     k = round(ppc ** (1.0 / d))
     if k ** d == ppc:

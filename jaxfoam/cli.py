@@ -310,6 +310,18 @@ def add_render_parser(sub):
     p.set_defaults(func=cmd_render)
 
 
+# Picture and video formats the renderer writes (matplotlib's and ffmpeg's, chosen by the suffix).
+PICTURE_SUFFIXES = (".png", ".pdf", ".svg", ".jpg", ".jpeg")
+VIDEO_SUFFIXES = (".mp4", ".mov", ".mkv", ".avi")
+
+
+def _check_suffix(path, option, allowed):
+    suffix = Path(os.fspath(path)).suffix.lower()
+    if suffix not in allowed:
+        raise CLIError(f"{option} {os.fspath(path)!r} must end in one of {', '.join(allowed)} (the format is "
+                       f"chosen by the suffix), got {suffix or 'no suffix'!r}")
+
+
 def cmd_render(args) -> int:
     from ._guards import check_output, require_extra
     from ._trajectory import load_trajectory
@@ -318,8 +330,10 @@ def cmd_render(args) -> int:
     require_extra("jaxfoam render", "matplotlib", *(("imageio", "imageio_ffmpeg") if args.mp4 else ()))
     traj = load_trajectory(args.trajectory)
     check_output(args.out, "--out", {"the trajectory": args.trajectory, "--mp4": args.mp4})
+    _check_suffix(args.out, "--out", PICTURE_SUFFIXES)
     if args.mp4:
         check_output(args.mp4, "--mp4", {"the trajectory": args.trajectory})
+        _check_suffix(args.mp4, "--mp4", VIDEO_SUFFIXES)
     render_contact_sheet(traj, args.out, n_frames=args.panels, color=args.color)
     print(f"wrote {args.out}")
     if args.mp4:
@@ -358,10 +372,11 @@ def cmd_demo(args) -> int:
 
     require_extra("jaxfoam demo", "matplotlib", *(("imageio", "imageio_ffmpeg") if args.mp4 else ()))
     scene = args.scene or find_scene(DEMO_SCENE)
+    _check_suffix(args.out, "--out", PICTURE_SUFFIXES)
+    if args.mp4:
+        _check_suffix(args.mp4, "--mp4", VIDEO_SUFFIXES)
     out = Path(check_output(args.out, "--out", {"--scene": scene}))
     h5 = out.with_suffix(".h5")
-    if h5 == out:
-        raise CLIError(f"--out {str(out)!r}: the picture needs another suffix than .h5 (the trajectory goes beside it)")
     check_output(h5, "the trajectory beside --out", {"--scene": scene})
     if args.mp4:
         check_output(args.mp4, "--mp4", {"--scene": scene, "--out": out, "the trajectory": h5})

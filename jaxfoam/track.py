@@ -212,7 +212,7 @@ def _read_frames(path, fps, every, downsample, max_frames):
             raise ValueError(f"video: directory {path!r} holds no image ({', '.join(IMAGE_EXTENSIONS)})")
         if fps is None:
             raise ValueError("fps: an image directory has no frame rate; pass --fps")
-        source = (iio.imread(os.path.join(path, n)) for n in names)
+        source = (_read_image(iio, os.path.join(path, n)) for n in names)
     else:
         if not os.path.exists(path):
             raise ValueError(f"video: file {path!r} does not exist")
@@ -251,6 +251,13 @@ def _read_frames(path, fps, every, downsample, max_frames):
     if not kept:
         raise ValueError(f"video: {path!r} holds no frame")
     return np.stack(kept), float(fps)
+
+
+def _read_image(iio, path):
+    try:
+        return iio.imread(path)
+    except Exception as exc:  # imageio raises many kinds for an unreadable file
+        raise ValueError(f"video: cannot read image {path!r} ({type(exc).__name__}: {exc})") from exc
 
 
 def _frames_of(iio, path):

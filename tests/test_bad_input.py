@@ -108,6 +108,8 @@ def files(tmp_path_factory):
     f["traj"] = Path(jaxfoam.save_trajectory(d / "traj.h5", _trajectory_parts()))
     parts = _trajectory_parts()
     parts["frames"]["x"][2, 5, 0] = np.nan
+    f["traj_png"] = d / "traj.png"  # a trajectory file under a picture's name
+    shutil.copy(f["traj"], f["traj_png"])
     f["traj_nan"] = Path(jaxfoam.save_trajectory(d / "traj_nan.h5", parts))
     f["traj_cut"] = d / "traj_cut.h5"
     blob = f["traj"].read_bytes()
@@ -141,8 +143,12 @@ def files(tmp_path_factory):
     f["frames_dir"].mkdir()
     import imageio.v3 as iio
 
+    f["bad_frames"] = d / "bad_frames"
+    f["bad_frames"].mkdir()
     for k in range(2):
         iio.imwrite(f["frames_dir"] / f"f{k}.png", np.zeros((16, 16, 3), np.uint8))
+    iio.imwrite(f["bad_frames"] / "f0.png", np.zeros((16, 16, 3), np.uint8))
+    (f["bad_frames"] / "f1.png").write_text("not a picture\n")
     return f
 
 
@@ -212,6 +218,11 @@ CLI_CASES = {
     "render --fps 0": (RENDER + ["--fps", "0", "--mp4", "{dir}/o.mp4"], ["--fps", "> 0", "'0'"]),
     "render --color": (RENDER + ["--color", "speed"], ["--color", "speed", "gamma_dot"]),
     "render --out the trajectory": (["render", "{traj}", "--out", "{traj}"], ["--out", "same file as the trajectory"]),
+    "render --out a .h5 file": (["render", "{traj}", "--out", "{dir}/sheet.h5"], ["--out", "sheet.h5", ".png", "'.h5'"]),
+    "render --out a picture named like the trajectory": (["render", "{traj_png}", "--out", "{traj_png}"],
+                                                         ["--out", "same file as the trajectory"]),
+    "render --mp4 a GIF": (RENDER + ["--mp4", "{dir}/o.gif"], ["--mp4", "o.gif", ".mp4", "'.gif'"]),
+    "track a corrupt image in the directory": (["track", "{bad_frames}"] + TRACK[2:], ["f1.png", "cannot read image"]),
     "render --out a directory": (["render", "{traj}", "--out", "{outdir}"], ["--out", "is a directory"]),
     "render --mp4 the trajectory": (RENDER + ["--mp4", "{traj}"], ["--mp4", "same file as the trajectory"]),
 
