@@ -166,6 +166,11 @@ def run(res: int, cfl: float = CFL):
                 particles=int(st.active.sum()), steps=substeps * FRAMES, seconds=tm.seconds)
 
 
+def _plug_ratio(r) -> float | str:
+    """Plug speed over the analytic one at G_eff; "-" when G_eff is below the yield limit (no flow predicted)."""
+    return r["plug"] / r["plug_eff"] if r["plug_eff"] > 0 else "- (G_eff below yield)"
+
+
 def main(argv=None):
     args = C.parse_args(__doc__, argv)
     if args.quick:
@@ -228,7 +233,7 @@ def main(argv=None):
                           "error vs u(G_eff)", "order", "plug / u_max(G)", "plug / u_max(G_eff)", "wall s"],
                          [[r["res"], r["cfl"], r["dx"], r["particles"], r["steps"], r["err"],
                            order_of.get(id(r), ("", ""))[0], r["g_eff"], r["err_eff"], order_of.get(id(r), ("", ""))[1],
-                           r["plug"] / u_max, r["plug"] / r["plug_eff"], r["seconds"]] for r in runs]))
+                           r["plug"] / u_max, _plug_ratio(r), r["seconds"]] for r in runs]))
     C.write_md(NAME, args.quick, "Poiseuille (gravity-driven channel) flow of the HB foam", body)
 
 

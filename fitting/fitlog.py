@@ -14,18 +14,22 @@ Layout (one file; a multi-start fit keeps one group per start)::
         nonfinite          (K,)  cumulative non-finite evaluations
         time               (K,)  wall time since the fit started, s (continues across resumes)
         state/<field>      (K, ...) optimizer-state leaves with at most ROW_LEAF_MAX elements, every row
+        checksum           (K,)  uint64 digest of the row's stored values (version 2 on), checked on resume
         slots/<0|1>/<field>  larger leaves (an LM Jacobian of image residuals), written for iteration k
                            into slot k % 2 (attr iteration = k), so the slot of the last committed row is
-                           never the one being overwritten when a kill interrupts a write
+                           never the one being overwritten when a kill interrupts a write; attr
+                           checksum = the digest of its leaves
 
 A row is committed by incrementing the `rows` attribute after all of its datasets are written, then the
 file is flushed. Resuming restores the last committed row exactly (float64 values round-trip bit for
 bit), so the continued fit is bit-identical to one that was never interrupted: the optimizers are
 deterministic and hold all their memory in the state. The only random input of a fit, the multi-start
-Latin-hypercube seed, is stored with the starts it produced.
+Latin-hypercube seed, is stored with the starts it produced. A log that is damaged (not HDF5, truncated,
+rows missing, a checksum that does not match, non-finite parameters) is refused with a FitLogError.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 
@@ -33,7 +37,7 @@ import h5py
 import numpy as np
 
 FORMAT = "jaxfoam-fitlog"
-VERSION = 1
+VERSION = 2  # 2: per-row checksums
 # Optimizer-state leaves up to this many elements are kept for every iteration; larger ones (an LM
 # residual vector or Jacobian over image pixels) only for the last two iterations.
 ROW_LEAF_MAX = 4096
@@ -41,6 +45,19 @@ ROW_LEAF_MAX = 4096
 
 class FitLogError(ValueError):
     """The fit log cannot be used as asked (wrong format, a different fit, inconsistent rows)."""
+
+
+def _digest(arrays) -> np.uint64:
+    """A 64-bit digest of (name, array) pairs: dtype, shape and bytes."""
+    h = hashlib.blake2b(digest_size=8)
+    for name, a in arrays:
+        a = np.ascontiguousarray(a)
+        h.update(f"{name}|{a.dtype.str}|{a.shape}|".encode())
+        h.update(a.tobytes())
+    return np.frombuffer(h.digest(), np.uint64)[0]
+
+
+DAMAGED = "start afresh without --resume, or use another log"
 
 
 class FitLog:
@@ -55,7 +72,13 @@ class FitLog:
         if mode not in ("a", "r"):
             raise ValueError(f"FitLog mode must be 'a' or 'r', got {mode!r}")
         self.path = os.fspath(path)
-        self.file = h5py.File(self.path, mode)
+        if os.path.isdir(self.path):
+            raise FitLogError(f"{self.path}: the fit log path is a directory")
+        try:
+            self.file = h5py.File(self.path, mode)
+        except OSError as exc:
+            raise FitLogError(f"{self.path}: cannot be read as a fit log (not HDF5, truncated or damaged: {exc}); "
+                              f"{DAMAGED}") from exc
         attrs = self.file.attrs
         if "format" not in attrs and mode == "r":
             self.file.close()
@@ -196,25 +219,68 @@ class RunLog:
             if ds.shape[0] < k + 1:
                 ds.resize(k + 1, axis=0)
             ds[k] = value
+        if big:
+            slot.attrs["checksum"] = _digest(sorted((n, slot[n][()]) for n in big))
+        # The digest of the values as stored (read back), so a resume recomputes it bit for bit.
+        digest = _digest(sorted((name, g[name][k]) for name in row))
+        if "checksum" not in g:
+            g.create_dataset("checksum", shape=(0,), maxshape=(None,), dtype=np.uint64, chunks=True)
+        if g["checksum"].shape[0] < k + 1:
+            g["checksum"].resize(k + 1, axis=0)
+        g["checksum"][k] = digest
         g.attrs["rows"] = k + 1
         self.log.file.flush()
 
     def restore(self) -> dict:
         """The committed rows: dict with history arrays and `state` (field -> array of the last row)."""
+        try:
+            return self._restore()
+        except FitLogError:
+            raise
+        except (OSError, KeyError, ValueError, TypeError) as exc:  # h5py's errors for a damaged file
+            raise FitLogError(f"{self.log.path} run {self.index}: the log is damaged ({type(exc).__name__}: "
+                              f"{exc}); {DAMAGED}") from exc
+
+    def _restore(self) -> dict:
         k = self.rows
+        where = f"{self.log.path} run {self.index}"
         if k == 0:
-            raise FitLogError(f"{self.log.path} run {self.index}: no committed iteration to resume from")
+            raise FitLogError(f"{where}: no committed iteration to resume from")
         g = self.group
-        out = {name: np.asarray(g[name][:k]) for name in ("iteration", "x", "loss", "evaluations",
-                                                           "nonfinite", "time")}
+        row_names = ["iteration", "x", "loss", "evaluations", "nonfinite", "time"]
+        row_names += [f"state/{name}" for name in g.get("state", {})]
+        for name in row_names + (["checksum"] if "checksum" in g else []):
+            if name not in g or g[name].shape[0] < k:
+                held = g[name].shape[0] if name in g else 0
+                raise FitLogError(f"{where}: the log claims {k} committed rows but '{name}' holds {held}; "
+                                  f"the log is damaged; {DAMAGED}")
+        if "checksum" in g:
+            sums = np.asarray(g["checksum"][:k])
+            old = int(self.log.file.attrs.get("version", 1)) < 2
+            for i in range(k):
+                if old and sums[i] == 0:  # a row a version-1 writer committed, before checksums
+                    continue
+                if _digest(sorted((name, g[name][i]) for name in row_names)) != sums[i]:
+                    raise FitLogError(f"{where}: row {i} does not match its checksum (the log was altered or "
+                                      f"damaged); {DAMAGED}")
+        elif int(self.log.file.attrs.get("version", 1)) >= 2:
+            raise FitLogError(f"{where}: the rows' checksums are missing; {DAMAGED}")
+        out = {name: np.asarray(g[name][:k]) for name in row_names[:6]}
+        if not np.all(np.isfinite(out["x"])):
+            i = int(np.argmax(~np.all(np.isfinite(out["x"].reshape(k, -1)), axis=1)))
+            raise FitLogError(f"{where}: row {i} holds non-finite parameters {out['x'][i].tolist()}; {DAMAGED}")
         state = {name: np.asarray(ds[k - 1]) for name, ds in g.get("state", {}).items()}
         slot_name = f"slots/{(k - 1) % 2}"
         if slot_name in g:
             slot = g[slot_name]
             if int(slot.attrs["iteration"]) != k - 1:
-                raise FitLogError(f"{self.log.path} run {self.index}: slot {slot_name} holds iteration "
+                raise FitLogError(f"{where}: slot {slot_name} holds iteration "
                                   f"{int(slot.attrs['iteration'])}, expected {k - 1}")
-            state.update({name: np.asarray(ds) for name, ds in slot.items()})
+            leaves = {name: np.asarray(ds) for name, ds in slot.items()}
+            if "checksum" in slot.attrs and _digest(sorted(leaves.items())) != slot.attrs["checksum"]:
+                raise FitLogError(f"{where}: slot {slot_name} does not match its checksum (the log was altered "
+                                  f"or damaged); {DAMAGED}")
+            state.update(leaves)
         out["state"] = state
         out["finished"] = self.finished()
         return out

@@ -5,6 +5,7 @@ import dataclasses
 import json
 import math
 import os
+import warnings
 from typing import Any
 
 import jax
@@ -34,10 +35,20 @@ FLOOR_CONTACTS = ("grid", "particle")
 # Particles per cell: 2 per axis is the MPM standard (Stomakhin 2013), enough to keep every cell
 # of the material covered under moderate stretch.
 DEFAULT_PPC = {2: 4, 3: 8}
+# Sample points drawn over the whole domain at most (the sampling work arrays grow with their number).
+MAX_CANDIDATES = 50_000_000
 
 
 class SceneError(JaxfoamError, ValueError):
     """A scene description that does not follow the spec; the message names the field."""
+
+
+class PlausibilityWarning(UserWarning):
+    """A legal but suspicious input (a units slip, a plate that never meets the material)."""
+
+
+# Round-off allowance, m, when a shape's edge lies on the domain's or the floor's boundary.
+GEOMETRY_TOL = 1e-9
 
 
 @jax.tree_util.register_dataclass
@@ -243,17 +254,7 @@ def load_scene(scene: str | os.PathLike | dict, dtype=jnp.float64) -> Scene:
     if isinstance(scene, dict):
         spec = scene
     else:
-        text = str(scene)
-        if not text.lstrip().startswith("{"):
-            try:
-                with open(text) as fh:
-                    text = fh.read()
-            except OSError as exc:
-                raise SceneError(f"scene: cannot read file {scene!r}: {exc}") from exc
-        try:
-            spec = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise SceneError(f"scene: not valid JSON ({exc})") from exc
+        spec = _read_spec(scene)
     _keys(spec, SCENE_KEYS, "scene")
     for k in REQUIRED_KEYS:
         if k not in spec:
@@ -262,8 +263,8 @@ def load_scene(scene: str | os.PathLike | dict, dtype=jnp.float64) -> Scene:
     if kind not in KINDS:
         _err("kind", f"unknown kind {kind!r}; expected one of {list(KINDS)}")
     d = spec["dim"]
-    if d not in (2, 3) or isinstance(d, bool):
-        _err("dim", f"expected 2 or 3, got {d!r}")
+    if not isinstance(d, int) or isinstance(d, bool) or d not in (2, 3):
+        _err("dim", f"must be the integer 2 or 3, got {d!r}")
     gravity = _vec(spec.get("gravity", [0.0, -9.81] + [0.0] * (d - 2)), "gravity", d)
     density = _num(spec["density"], "density", lo=0.0, lo_open=True)
     kappa = _num(spec["kappa"], "kappa", lo=0.0, lo_open=True)
@@ -316,12 +317,91 @@ def load_scene(scene: str | os.PathLike | dict, dtype=jnp.float64) -> Scene:
     for k in ("name", "notes"):
         if k in spec and not isinstance(spec[k], str):
             _err(k, "expected a string")
+    _check_geometry(spec, dmin, dmax, floor_y, plates, "plate" if "plate" in spec else "plates")
     return Scene(
         gravity=jnp.asarray(gravity, dtype), plates=plates, floor_friction=jnp.asarray(friction, dtype),
         kind=kind, dim=d, density=density, kappa=kappa, domain_min=tuple(dmin.tolist()),
         domain_max=tuple(dmax.tolist()), floor_y=floor_y, floor_sticky=sticky, floor_contact=contact,
         initial_velocity=v0,
         source=json.dumps(spec, sort_keys=True))
+
+
+def _read_spec(scene) -> dict:
+    """The JSON object of a scene file or text: a path object or the name of an existing file is read
+    as a file; any other string must be JSON text (no guess from its first character)."""
+    text = os.fspath(scene) if isinstance(scene, os.PathLike) else scene
+    if not isinstance(text, str):
+        raise SceneError(f"scene: expected a dict, JSON text or a file path, got {type(scene).__name__}")
+    if isinstance(scene, os.PathLike) or os.path.exists(text):
+        try:
+            with open(text, encoding="utf-8") as fh:
+                body = fh.read()
+        except UnicodeDecodeError as exc:
+            raise SceneError(f"scene file {text!r}: must be UTF-8 text (byte {exc.object[exc.start:exc.start + 1]!r} "
+                             f"at position {exc.start} is not UTF-8); save it as UTF-8 JSON") from exc
+        except OSError as exc:
+            raise SceneError(f"scene: cannot read file {text!r}: {exc}") from exc
+        try:
+            return json.loads(body)
+        except json.JSONDecodeError as exc:
+            raise SceneError(f"scene file {text!r}: not valid JSON ({exc})") from exc
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        if text.lstrip().startswith(("{", "[")):
+            raise SceneError(f"scene: not valid JSON ({exc})") from exc
+        raise SceneError(f"scene: cannot read file {text!r}: no such file (and the text is not JSON either)") from exc
+
+
+def _plate_range(plate: Plate) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) (d,) m: the box every position of the plate's motion stays in."""
+    c = np.asarray(plate.center, float)
+    h = np.asarray(plate.half_size, float)
+    if plate.motion == "sinusoid":
+        reach = np.abs(np.asarray(plate.axis, float)) * float(plate.amplitude)
+        return c - h - reach, c + h + reach
+    if plate.motion == "samples":
+        pos = np.asarray(plate.sample_positions, float)
+        return pos.min(axis=0) - h, pos.max(axis=0) + h
+    return c - h, c + h
+
+
+def _check_geometry(spec, dmin, dmax, floor_y, plates, plate_field):
+    """The floor, the initial shape and the plates against the domain: errors for what cannot be simulated
+    as written, a PlausibilityWarning for a plate whose whole motion stays clear of the initial shape."""
+    d = len(dmin)
+    tol = GEOMETRY_TOL * max(1.0, float(np.max(np.abs(np.concatenate([dmin, dmax])))))
+    axes = "xyz"
+    if floor_y is not None and not (dmin[1] - tol <= floor_y < dmax[1]):
+        _err("floor.y", f"must lie in the domain's y range [{dmin[1]:g}, {dmax[1]:g}) m, got {floor_y:g}")
+    shape = spec["initial_shape"]
+    box = None
+    if shape["type"] == "box":
+        box = (np.asarray(shape["min"], float), np.asarray(shape["max"], float))
+    elif shape["type"] == "ellipse":
+        c, r = np.asarray(shape["center"], float), np.asarray(shape["radii"], float)
+        box = (c - r, c + r)
+    if box is not None:
+        lo, hi = box
+        for a in range(d):
+            if lo[a] < dmin[a] - tol or hi[a] > dmax[a] + tol:
+                _err("initial_shape", f"{shape['type']} spans {axes[a]} in [{lo[a]:g}, {hi[a]:g}] m, outside the "
+                     f"domain's [{dmin[a]:g}, {dmax[a]:g}] m; the shape must lie inside the domain")
+        if floor_y is not None and lo[1] < floor_y - tol:
+            _err("initial_shape", f"{shape['type']} reaches down to y = {lo[1]:g} m, below the floor "
+                 f"(floor.y = {floor_y:g} m): material must start on or above the floor")
+    for i, plate in enumerate(plates):
+        field = "plate" if plate_field == "plate" else f"plates[{i}]"
+        plo, phi = _plate_range(plate)
+        if np.any(phi <= dmin) or np.any(plo >= dmax):
+            _err(field, f"lies outside the domain along its whole motion (it spans {plo.round(6).tolist()} to "
+                 f"{phi.round(6).tolist()} m, the domain {dmin.tolist()} to {dmax.tolist()} m): check its "
+                 "center and half_size (m)")
+        if box is not None and (np.any(phi < box[0] - tol) or np.any(plo > box[1] + tol)):
+            warnings.warn(f"scene field '{field}': the plate never touches the initial material (its motion "
+                          f"spans {plo.round(6).tolist()} to {phi.round(6).tolist()} m, the initial shape "
+                          f"{box[0].round(6).tolist()} to {box[1].round(6).tolist()} m)",
+                          PlausibilityWarning, stacklevel=3)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -430,8 +510,10 @@ def sample_particles(scene: Scene, dx: float, ppc: int | None = None, seed: int 
     rng = np.random.default_rng(seed)
     lo, hi = np.asarray(scene.domain_min), np.asarray(scene.domain_max)
     ncell = np.ceil((hi - lo) / dx).astype(int)
-    if np.prod(ncell) * ppc > 50_000_000:
-        raise ValueError(f"dx = {dx} m gives {np.prod(ncell)} cells: too fine for this domain")
+    if np.prod(ncell) * ppc > MAX_CANDIDATES:
+        raise ValueError(f"dx = {dx:g} m and ppc = {ppc} give {int(np.prod(ncell)):,} cells x {ppc} = "
+                         f"{int(np.prod(ncell)) * ppc:,} sample points over the domain, more than {MAX_CANDIDATES:,}: "
+                         f"use a coarser dx or fewer particles per cell")
     cells = np.stack(np.meshgrid(*[np.arange(n) for n in ncell], indexing="ij"), -1).reshape(-1, d)
     k = round(ppc ** (1.0 / d))
     if k ** d == ppc:

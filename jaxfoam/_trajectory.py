@@ -20,8 +20,11 @@ Layout (format "jaxfoam-trajectory", version 1; SI units everywhere):
 ```
 
 Each frame dataset carries a `units` attribute. Extra per-frame arrays (any (T, N, ...) entry of
-the frames dict) are stored under /frames as well. Frames are appended one block at a time, so a run
-that fails part-way leaves a readable file with `complete = False`.
+the frames dict) are stored under /frames as well. Frames are appended one block at a time to a
+temporary file beside the output, renamed into place when the writer closes: a run that fails part-way
+(an exception) leaves a readable file with `complete = False`; a killed one leaves the output path as it
+was (and its temporary `.NAME.partial-PID-*.h5`, marked incomplete); concurrent writers each publish
+a whole file.
 """
 from __future__ import annotations
 
@@ -39,6 +42,7 @@ import jax
 import numpy as np
 
 from ._errors import JaxfoamError
+from ._guards import publish, temporary_path
 from ._params import Params
 
 FORMAT = "jaxfoam-trajectory"
@@ -183,8 +187,11 @@ class TrajectoryWriter:
         self.dtype = dtype
         self.path = os.fspath(path)
         self.compression = compression
-        os.makedirs(os.path.dirname(os.path.abspath(self.path)), exist_ok=True)
-        self._file = h5py.File(self.path, "w")
+        if os.path.isdir(self.path):
+            raise ValueError(f"save_trajectory: {self.path!r} is a directory; give a file path")
+        self._tmp = temporary_path(self.path)
+        # Each writer has its own file, so HDF5's lock never blocks a concurrent run on the same output.
+        self._file = h5py.File(self._tmp, "w")
         f = self._file
         f.attrs.update(dict(format=FORMAT, format_version=FORMAT_VERSION, jaxfoam_version=_version(),
                             dtype=dtype.name, dx=float(dx), dt=float(dt), substeps=int(substeps),
@@ -250,6 +257,7 @@ class TrajectoryWriter:
         if self._file.id.valid:
             self._file.attrs["complete"] = bool(complete and self._count > 0)
             self._file.close()
+            publish(self._tmp, self.path)
 
     def __enter__(self):
         return self
@@ -325,8 +333,11 @@ def load_trajectory(path) -> SavedTrajectory:
         for k in ("dx", "dt", "substeps", "dtype"):
             if k not in attrs:
                 bad(f"missing root attribute '{k}'")
-        times = np.asarray(f["times"][()], np.float64)
-        frames = {name: ds[()] for name, ds in f["frames"].items()}
+        try:
+            times = np.asarray(f["times"][()], np.float64)
+            frames = {name: ds[()] for name, ds in f["frames"].items()}
+        except (OSError, KeyError) as exc:
+            bad(f"a dataset cannot be read (the file is damaged or truncated): {exc}")
         for name in REQUIRED_FRAMES:
             if name not in frames:
                 bad(f"missing '/frames/{name}'")
@@ -335,6 +346,12 @@ def load_trajectory(path) -> SavedTrajectory:
                 bad(f"'/frames/{name}' has shape {a.shape}, expected (T={len(times)}, N={frames['x'].shape[1]}, ...)")
         if frames["x"].ndim != 3 or frames["x"].shape[-1] not in (2, 3):
             bad(f"'/frames/x' must have shape (T, N, 2 or 3), got {frames['x'].shape}")
+        active = np.asarray(frames["active"], bool)
+        nonfinite = ~np.all(np.isfinite(frames["x"]), axis=-1) & (active if active.shape == frames["x"].shape[:2] else True)
+        if nonfinite.any():
+            t, i = np.argwhere(nonfinite)[0]
+            bad(f"'/frames/x' holds non-finite positions ({int(nonfinite.sum())} values; first at frame {t}, "
+                f"particle {i}): the positions must be finite numbers in m")
         if len(times) and (not np.all(np.isfinite(times)) or np.any(np.diff(times) <= 0)):
             bad("'/times' must be finite and strictly increasing")
         missing = [k for k in PARAM_FIELDS if k not in f["params"].attrs]

@@ -55,6 +55,8 @@ import fitting
 from fitting.uncertainty import DEFAULT_MAX_RELATIVE_WIDTH
 
 from ._errors import JaxfoamError
+from ._guards import (DEFAULT_MAX_PARTICLES, DEFAULT_MAX_SUBSTEPS, check_dtype_range, check_output, check_particles,
+                      check_substeps, estimate_particles, missing_modules, substeps_per_frame, atomic_output)
 from ._params import FIT_FIELDS, Params
 from ._scene import Scene, init_state
 from ._rollout import rollout
@@ -164,6 +166,10 @@ FIT_FRACTURE = None
 # this many simulated frames per observed one (data with a few frames close together: then the inserted
 # frames are spaced at the duration / (this * observed frames)); a frame costs one sort and one record.
 MAX_FRAMES_PER_OBSERVED = 4
+# The coarsest pixel level keeps this many pixels across the image (choose_pixel_level's floor), and a
+# fit's camera must put this many pixels across the scene domain.
+MIN_LEVEL_PIXELS = 8
+MIN_DOMAIN_PIXELS = 8
 
 
 class CalibrationError(JaxfoamError, ValueError):
@@ -526,7 +532,9 @@ class FitResult:
 
     def write(self, path) -> None:
         """Write `to_dict()` as JSON to `path`."""
-        Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n")
+        text = json.dumps(self.to_dict(), indent=2) + "\n"
+        with atomic_output(path) as tmp:
+            Path(tmp).write_text(text)
 
     def report(self) -> str:
         """A plain-text summary: values, intervals, correlations, notes."""
@@ -760,14 +768,41 @@ def choose_pixel_level(pixel_size: float, spacing: float, image_shape) -> int:
     return level
 
 
-def build_problem(data: Silhouettes, settings: FitSettings | None = None) -> CalibrationProblem:
+def max_pixel_level(image_shape) -> int:
+    """The coarsest pyramid level that keeps at least MIN_LEVEL_PIXELS pixels across the image."""
+    return max(0, int(math.floor(math.log2(max(1, min(image_shape)) / MIN_LEVEL_PIXELS))))
+
+
+def check_fit_data(data: Silhouettes, scene: Scene, used) -> None:
+    """Refuse data a fit cannot use: a camera whose pixels are larger than the domain (a units slip), masks
+    with no foam, or foam in every pixel, in every used frame (pixels of weight > 0)."""
+    p = data.camera.pixel_size
+    span = min(scene.domain_max[k] - scene.domain_min[k] for k in range(2))
+    if span / p < MIN_DOMAIN_PIXELS:
+        raise CalibrationError(f"camera.pixel_size = {p:g} m: the scene domain ({span:g} m across) spans "
+                               f"{span / p:.3g} pixels, fewer than {MIN_DOMAIN_PIXELS}; the pixel size is in m "
+                               f"per pixel (not mm or um)")
+    seen = data.weights[used] > 0
+    foam = data.masks[used].astype(bool) & seen
+    if not foam.any():
+        raise CalibrationError(f"masks: no foam pixel (of weight > 0) in any of the {len(used)} used frame(s); "
+                               f"nothing to fit (check the tracking threshold or --time-window)")
+    if np.array_equal(foam, seen):
+        raise CalibrationError(f"masks: every pixel of weight > 0 is foam in every used frame; the silhouette has "
+                               f"no boundary to fit (check the tracking threshold or the camera)")
+
+
+def build_problem(data: Silhouettes, settings: FitSettings | None = None, *,
+                  max_particles: int = DEFAULT_MAX_PARTICLES,
+                  max_substeps: int = DEFAULT_MAX_SUBSTEPS) -> CalibrationProblem:
     """Bind a dataset to a simulator at the fit's dx, a renderer and a parameter transform.
 
     Args:
       data: the observations (`jaxfoam.io.read_silhouettes`).
       settings: `FitSettings` (default: all defaults).
+      max_particles, max_substeps: budgets of one rollout (BudgetError, checked before it is bound).
     Returns a `CalibrationProblem`. Raises CalibrationError for unusable settings or data (no frame
-    after the start of the simulation, an empty first mask).
+    after the start of the simulation, an empty first mask, masks without foam or a boundary).
     """
     settings = (settings or FitSettings()).validate()
     dtype = jnp.float64 if settings.dtype == "float64" else jnp.float32
@@ -794,6 +829,15 @@ def build_problem(data: Silhouettes, settings: FitSettings | None = None) -> Cal
 
     times = np.asarray(data.times, float)
     first_mask = scene.initial_shape["type"] == "first_mask"
+    if settings.pixel_level is not None and settings.pixel_level > max_pixel_level(data.image_shape):
+        raise CalibrationError(f"pixel_level must be in [0, {max_pixel_level(data.image_shape)}] for "
+                               f"{data.image_shape[0]}x{data.image_shape[1]} pixel images (each level halves them; "
+                               f"at least {MIN_LEVEL_PIXELS} pixels across), got {settings.pixel_level}")
+    check_dtype_range(dict(mu=base.mu, kappa=kappa, sigma_y=base.sigma_y, eta=base.eta, m=base.m, rho=rho),
+                      settings.dtype)
+    estimate = estimate_particles(scene, dx, ppc)
+    if estimate is not None:
+        check_particles(estimate, d, jnp.dtype(dtype).itemsize, max_particles, dx=dx, ppc=ppc)
     try:
         state0 = init_state(scene, dx, ppc, rho=rho, seed=settings.seed,
                             first_mask=data.first_mask if first_mask else None, dtype=dtype)
@@ -814,9 +858,15 @@ def build_problem(data: Silhouettes, settings: FitSettings | None = None) -> Cal
                                    f"the data's frames are at {np.round(times, 4).tolist()} s")
     # Resampling needs free slots: the Simulator grows state0 to resample.capacity_factor times its
     # sampled count (inactive slots are neither simulated nor rendered).
+    check_fit_data(data, scene, used)
+    check_particles(int(np.sum(state0.active)), d, jnp.dtype(dtype).itemsize, max_particles, dx=dx, ppc=ppc)
     resample = settings.resample_for(d, ppc)
     fracture = settings.fracture_for(d)
     sim_times, observed = simulation_frames(t0, times[used])
+    per_frame = substeps_per_frame(scene, ref, dx, FIT_CFL, sim_times, t0)
+    check_substeps(per_frame, len(sim_times), max_substeps, span=float(sim_times[-1]) - t0,
+                   dt=float(np.max(np.diff(np.concatenate([[t0], sim_times])))) / per_frame,
+                   times_option="the data's times")
     sim = Simulator(scene, sim_times, ref, dx, ppc, dtype=dtype, state0=state0, cfl=FIT_CFL,
                     resample=resample, fracture=fracture)
 
@@ -1238,6 +1288,9 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
     try:
         ms = fitting.multistart(solve, starts, log=fitlog, resume=resume, seed=settings.seed, unit=unit,
                                 max_time=settings.time_budget)
+    except OSError as exc:  # h5py's error for a log damaged on disk
+        raise CalibrationError(f"{log}: the fit log cannot be read or written ({exc}); start afresh without "
+                               f"--resume, or use another log") from exc
     finally:
         if fitlog is not None:
             fitlog.close()
@@ -1631,23 +1684,25 @@ def add_fit_parser(subparsers) -> argparse.ArgumentParser:
                     "silhouette file. Density and kappa are known inputs from the scene. Writes fit.json, a loss "
                     "curve (<out>_loss.png), observed vs simulated silhouettes (<out>_overlay.png) and an HDF5 fit "
                     "log of every iteration (<out>.fitlog.h5) that --resume continues.")
+    from .cli import _add_budget_options, int_at_least, positive_float
+
     ap.add_argument("data", help="silhouette file (.h5)")
     ap.add_argument("--out", required=True, help="result file (.json)")
-    ap.add_argument("--dx", type=float, default=None,
+    ap.add_argument("--dx", type=positive_float, default=None,
                     help=f"grid spacing of the fit, m (default: the largest domain extent / {FIT_CELLS[2]} in 2D, "
                          f"/ {FIT_CELLS[3]} in 3D)")
-    ap.add_argument("--ppc", type=int, default=None,
+    ap.add_argument("--ppc", type=int_at_least(1), default=None,
                     help=f"particles per cell (default {FIT_PPC[2]} in 2D, {FIT_PPC[3]} in 3D)")
     ap.add_argument("--optimizer", choices=OPTIMIZERS, default="lm", help="default lm (Levenberg-Marquardt)")
     ap.add_argument("--fix", default=None,
                     help="hold parameters fixed, e.g. m=0.5,eta=10; kappa=.. or rho=.. override the scene's values")
     ap.add_argument("--bounds", default=None, help="bounds lo:hi, e.g. mu=20:1000,m=0.3:1.2 (defaults: "
                     + ", ".join(f"{k}={lo:g}:{hi:g}" for k, (lo, hi) in DEFAULT_BOUNDS.items()) + ")")
-    ap.add_argument("--starts", type=int, default=DEFAULT_STARTS, help=f"multi-start guesses (default {DEFAULT_STARTS})")
+    ap.add_argument("--starts", type=int_at_least(1), default=DEFAULT_STARTS, help=f"multi-start guesses (default {DEFAULT_STARTS})")
     ap.add_argument("--start", default=None, metavar="NAME=VALUE,...|FIT.json",
                     help="the first start's guess, e.g. mu=150,sigma_y=30, or a fit.json to continue from (e.g. a "
                          "fit of the same data on a coarser --dx); default: the centre of the start ranges")
-    ap.add_argument("--max-iter", type=int, default=None,
+    ap.add_argument("--max-iter", type=int_at_least(0), default=None,
                     help="iterations per start (default " + ", ".join(f"{k} {v}" for k, v in DEFAULT_MAX_ITER.items())
                     + ")")
     ap.add_argument("--time-window", default=None, metavar="T_LO:T_HI",
@@ -1655,8 +1710,8 @@ def add_fit_parser(subparsers) -> argparse.ArgumentParser:
     ap.add_argument("--time-budget", default=None, metavar="DURATION",
                     help="wall-time budget of the optimization, all starts together: 900 (s), 15m or 1.5h "
                          "(default: none). The best point found is reported when it runs out; --resume continues")
-    ap.add_argument("--seed", type=int, default=0, help="seed of the starts and particle sampling (default 0)")
-    ap.add_argument("--pixel-level", type=int, default=None,
+    ap.add_argument("--seed", type=int_at_least(0), default=0, help="seed of the starts and particle sampling (default 0)")
+    ap.add_argument("--pixel-level", type=int_at_least(0), default=None,
                     help="compare at 2^level larger pixels (default: the coarsest not larger than the particle spacing)")
     ap.add_argument("--dtype", choices=("float32", "float64"), default=FIT_DTYPE,
                     help=f"precision (default {FIT_DTYPE})")
@@ -1664,7 +1719,7 @@ def add_fit_parser(subparsers) -> argparse.ArgumentParser:
     ap.add_argument("--resume", action="store_true", help="continue the fit recorded in the fit log")
     ap.add_argument("--no-dx-check", action="store_true",
                     help="skip the discretization check (intervals then hold the statistical part only)")
-    ap.add_argument("--dx-refit", type=int, default=None, metavar="N",
+    ap.add_argument("--dx-refit", type=int_at_least(0), default=None, metavar="N",
                     help=f"LM iterations the discretization check runs on its finer grid from the optimum; the move "
                          f"they measure counts beside its first-order estimates (default {DEFAULT_DX_REFIT[2]} in 2D, "
                          f"{DEFAULT_DX_REFIT[3]} in 3D; 0: the estimates only; each iteration costs one or two "
@@ -1678,6 +1733,7 @@ def add_fit_parser(subparsers) -> argparse.ArgumentParser:
                          "FractureConfig defaults (density_ratio 0.2 in 2D, 0.12 in 3D), or e.g. "
                          "--fracture density_ratio=0.15")
     ap.add_argument("--no-plots", action="store_true", help="skip the pictures")
+    _add_budget_options(ap)
     ap.set_defaults(func=run_fit)
     return ap
 
@@ -1724,10 +1780,19 @@ def run_fit(args) -> int:
     settings = settings_from_args(args)
     out = Path(args.out)
     log = Path(args.log) if args.log else default_log_path(out)
+    check_output(out, "--out", {"the data": args.data})
+    check_output(log, "--log", {"the data": args.data, "--out": out})
+    data = read_silhouettes(args.data)
+    if args.resume and log.exists():
+        fitting.FitLog(log, mode="r").close()  # a file that is not a fit log is refused before any work
+    plots = not args.no_plots
+    if plots and missing_modules("matplotlib"):
+        print("jaxfoam fit: note: matplotlib is not installed, so the pictures are skipped (install the viz "
+              "extra: pip install 'jaxfoam[viz]')", flush=True)
+        plots = False
+    problem = build_problem(data, settings, max_particles=args.max_particles, max_substeps=args.max_substeps)
     if not args.resume and log.exists():
         log.unlink()  # a fresh fit: an old log of this name is replaced
-    data = read_silhouettes(args.data)
-    problem = build_problem(data, settings)
 
     def say(msg):
         print(msg, flush=True)
@@ -1743,7 +1808,7 @@ def run_fit(args) -> int:
     result.write(out)
     print(result.report())
     print(f"wrote {out} (fit log {log})")
-    if not args.no_plots:
+    if plots:
         loss_png = out.with_name(out.stem + "_loss.png")
         overlay_png = out.with_name(out.stem + "_overlay.png")
         plot_loss(result, loss_png)

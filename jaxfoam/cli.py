@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ._errors import JaxfoamError
+from ._guards import DEFAULT_MAX_PARTICLES, DEFAULT_MAX_SUBSTEPS
 
 # Shaving-cream-like defaults (order of magnitude of Gillette foam rheometry, Durian 1990 / Ovarlez 2010):
 # shear modulus ~ 100-300 Pa, yield stress ~ 20-60 Pa, Herschel-Bulkley consistency ~ 5-30 Pa s^m with
@@ -41,7 +42,49 @@ DEMO_PANELS = 8
 
 
 class CLIError(JaxfoamError):
-    """A user error reported as `jaxfoam: error: ...` with exit code 2."""
+    """A user error reported as `jaxfoam <command>: error: ...` with exit code 2."""
+
+
+# argparse value types: a bad value is reported as "argument --NAME: must be ..., got 'VALUE'" (exit 2).
+
+def int_at_least(lo: int):
+    def parse(text):
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be an integer >= {lo}, got {text!r}") from None
+        if value < lo:
+            raise argparse.ArgumentTypeError(f"must be an integer >= {lo}, got {text!r}")
+        return value
+    parse.__name__ = f"integer >= {lo}"
+    return parse
+
+
+def float_in(lo: float = -math.inf, hi: float = math.inf, lo_open: bool = False, hi_open: bool = False,
+             unit: str = ""):
+    """A finite float in the interval (lo, hi) with the given open ends."""
+    left = "(" if lo_open else "["
+    right = ")" if hi_open else "]"
+    if hi == math.inf:
+        rng = f"{'>' if lo_open else '>='} {lo:g}"
+    else:
+        rng = f"in {left}{lo:g}, {hi:g}{right}"
+    rng += f" {unit}" if unit else ""
+
+    def parse(text):
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be a number {rng}, got {text!r}") from None
+        ok = math.isfinite(value) and (value > lo if lo_open else value >= lo) and (value < hi if hi_open else value <= hi)
+        if not ok:
+            raise argparse.ArgumentTypeError(f"must be a finite number {rng}, got {text!r}")
+        return value
+    parse.__name__ = f"number {rng}"
+    return parse
+
+
+positive_float = float_in(0.0, lo_open=True)
 
 
 def _dtype(name: str):
@@ -110,43 +153,68 @@ def default_dx(scene) -> float:
 
 def run_simulation(scene_path, out, *, dx=None, ppc=None, dtype="float64", frames=DEFAULT_FRAMES,
                    duration=DEFAULT_DURATION, mu=DEFAULT_MU, sigma_y=DEFAULT_SIGMA_Y, eta=DEFAULT_ETA, m=DEFAULT_M,
-                   seed=0, cfl=None, frames_per_block=1, progress=True, creator=None) -> dict:
+                   seed=0, cfl=None, frames_per_block=1, progress=True, creator=None,
+                   max_particles=DEFAULT_MAX_PARTICLES, max_substeps=DEFAULT_MAX_SUBSTEPS) -> dict:
     """Simulate a scene file and write its trajectory (HDF5) to `out`; returns a summary dict.
 
     Records the initial state at t = 0 and `frames` frames evenly spaced over (0, duration] s. The rollout
     runs `frames_per_block` frames per call to `Simulator.rollout`, each block starting from the previous
     block's final state with the same grid, substep count and dt, and appends each block to the file as it
-    finishes (a run that fails part-way leaves a file marked incomplete). Raises SimulationError if the
-    state turns non-finite.
+    finishes (a run that fails part-way leaves a file marked incomplete; the file appears at `out` when
+    the run ends). Every option is checked before any work: a run over `max_particles` particles or
+    `max_substeps` substeps is refused (BudgetError). Raises SimulationError if the state turns non-finite.
     """
     import jax
     import jax.numpy as jnp
 
+    from ._guards import check_dtype_range, check_output, check_particles, check_substeps, estimate_particles
+    from ._guards import substeps_per_frame
     from ._params import Params
-    from ._scene import load_scene
     from ._model import CFL
-    from ._rollout import observe_default
-    from ._rollout import rollout
+    from ._rollout import observe_default, rollout
+    from ._scene import DEFAULT_PPC, load_scene
     from ._simulate import Simulator
     from .adjoint import Autodiff
     from ._trajectory import TrajectoryWriter
 
+    if dtype not in ("float32", "float64"):
+        raise CLIError(f"--dtype must be float32 or float64, got {dtype!r}")
     jdtype = _dtype(dtype)
     scene = load_scene(scene_path, dtype=jdtype)
+    out = check_output(out, "--out", {"the scene": scene_path})
     if not (isinstance(frames, int) and frames >= 1):
         raise CLIError(f"--frames must be an integer >= 1, got {frames!r}")
     if not (duration > 0 and math.isfinite(duration)):
         raise CLIError(f"--duration must be a positive time in s, got {duration!r}")
     if not (isinstance(frames_per_block, int) and frames_per_block >= 1):
         raise CLIError(f"frames_per_block must be an integer >= 1, got {frames_per_block!r}")
+    if not (isinstance(seed, int) and seed >= 0):
+        raise CLIError(f"--seed must be an integer >= 0, got {seed!r}")
+    if ppc is not None and not (isinstance(ppc, int) and ppc >= 1):
+        raise CLIError(f"--ppc must be an integer >= 1, got {ppc!r}")
+    if dx is not None and not (dx > 0 and math.isfinite(dx)):
+        raise CLIError(f"--dx must be a positive grid spacing in m, got {dx!r}")
+    cfl = CFL if cfl is None else cfl
+    if not (0 < cfl <= 1):
+        raise CLIError(f"--cfl must be in (0, 1], got {cfl!r}")
     dx = default_dx(scene) if dx is None else float(dx)
     params = Params(mu=float(mu), kappa=scene.kappa, sigma_y=float(sigma_y), eta=float(eta), m=float(m),
                     rho=scene.density).validate()
+    check_dtype_range(dict(mu=mu, sigma_y=sigma_y, eta=eta, m=m), dtype, lambda k: "--" + k.replace("_", "-"))
+    check_dtype_range(dict(kappa=scene.kappa, density=scene.density), dtype, lambda k: f"scene field '{k}'")
     times = duration * np.arange(1, frames + 1) / frames
-    sim = Simulator(scene, times, params, dx, ppc, dtype=jdtype, seed=seed, cfl=CFL if cfl is None else cfl)
-    n_active = int(sim.state0.active.sum())
     d = scene.dim
-    ppc_used = int(ppc) if ppc is not None else {2: 4, 3: 8}[d]
+    ppc_used = int(ppc) if ppc is not None else DEFAULT_PPC[d]
+    itemsize = np.dtype(dtype).itemsize
+    # The budgets are checked before sampling: a too-fine grid or a stiff material is refused at once.
+    estimate = estimate_particles(scene, dx, ppc_used)
+    if estimate is not None:
+        check_particles(estimate, d, itemsize, max_particles, dx=dx, ppc=ppc_used)
+    per_frame = substeps_per_frame(scene, params, dx, cfl, times)
+    check_substeps(per_frame, frames, max_substeps, span=duration, dt=float(times[0]) / per_frame)
+    sim = Simulator(scene, times, params, dx, ppc, dtype=jdtype, seed=seed, cfl=cfl)
+    n_active = int(sim.state0.active.sum())
+    check_particles(n_active, d, itemsize, max_particles, dx=dx, ppc=ppc_used)
     p_run = params.astype(sim.dtype)
     bar = Progress(duration, frames, n_active, enabled=progress)
     info = dict(particles=n_active, substeps_per_frame=sim.substeps, dt=sim.dt, dx=dx, grid=sim.grid.shape,
@@ -189,28 +257,42 @@ def add_simulate_parser(sub):
 
 
 def _add_run_options(p, dx=None, frames=DEFAULT_FRAMES, duration=DEFAULT_DURATION):
-    p.add_argument("--dx", type=float, default=dx,
+    p.add_argument("--dx", type=positive_float, default=dx,
                    help="grid spacing, m (default: the largest domain extent / 64 in 2D, / 32 in 3D)"
                    if dx is None else f"grid spacing, m (default {dx})")
-    p.add_argument("--ppc", type=int, default=None, help="particles per cell (default 4 in 2D, 8 in 3D)")
+    p.add_argument("--ppc", type=int_at_least(1), default=None, help="particles per cell (default 4 in 2D, 8 in 3D)")
     p.add_argument("--dtype", choices=("float32", "float64"), default="float64", help="precision (default float64)")
-    p.add_argument("--frames", type=int, default=frames, help=f"frames recorded after t = 0 (default {frames})")
-    p.add_argument("--duration", type=float, default=duration, help=f"simulated time, s (default {duration})")
-    p.add_argument("--mu", type=float, default=DEFAULT_MU, help=f"shear modulus, Pa (default {DEFAULT_MU})")
-    p.add_argument("--sigma-y", dest="sigma_y", type=float, default=DEFAULT_SIGMA_Y,
+    p.add_argument("--frames", type=int_at_least(1), default=frames,
+                   help=f"frames recorded after t = 0 (default {frames})")
+    p.add_argument("--duration", type=positive_float, default=duration, help=f"simulated time, s (default {duration})")
+    p.add_argument("--mu", type=float_in(0.0, lo_open=True, unit="Pa"), default=DEFAULT_MU,
+                   help=f"shear modulus, Pa (default {DEFAULT_MU})")
+    p.add_argument("--sigma-y", dest="sigma_y", type=float_in(0.0, unit="Pa"), default=DEFAULT_SIGMA_Y,
                    help=f"yield stress, Pa (default {DEFAULT_SIGMA_Y})")
-    p.add_argument("--eta", type=float, default=DEFAULT_ETA,
+    p.add_argument("--eta", type=float_in(0.0, unit="Pa s^m"), default=DEFAULT_ETA,
                    help=f"Herschel-Bulkley consistency, Pa s^m (default {DEFAULT_ETA})")
-    p.add_argument("--m", type=float, default=DEFAULT_M, help=f"Herschel-Bulkley exponent (default {DEFAULT_M})")
-    p.add_argument("--seed", type=int, default=0, help="particle sampling seed (default 0)")
-    p.add_argument("--cfl", type=float, default=None, help="CFL number of the time step (default jaxfoam.CFL)")
+    p.add_argument("--m", type=float_in(0.0, 5.0, lo_open=True), default=DEFAULT_M,
+                   help=f"Herschel-Bulkley exponent, in (0, 5] (default {DEFAULT_M})")
+    p.add_argument("--seed", type=int_at_least(0), default=0, help="particle sampling seed (default 0)")
+    p.add_argument("--cfl", type=float_in(0.0, 1.0, lo_open=True), default=None,
+                   help="CFL number of the time step, in (0, 1] (default jaxfoam.CFL)")
+    _add_budget_options(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def _add_budget_options(p):
+    p.add_argument("--max-particles", type=int_at_least(1), default=DEFAULT_MAX_PARTICLES,
+                   help=f"refuse a run of more particles than this (default {DEFAULT_MAX_PARTICLES:,})")
+    p.add_argument("--max-substeps", type=int_at_least(1), default=DEFAULT_MAX_SUBSTEPS,
+                   help=f"refuse a rollout of more substeps than this, all frames together "
+                        f"(default {DEFAULT_MAX_SUBSTEPS:,})")
 
 
 def cmd_simulate(args) -> int:
     info = run_simulation(args.scene, args.out, dx=args.dx, ppc=args.ppc, dtype=args.dtype, frames=args.frames,
                           duration=args.duration, mu=args.mu, sigma_y=args.sigma_y, eta=args.eta, m=args.m,
-                          seed=args.seed, cfl=args.cfl, progress=not args.quiet)
+                          seed=args.seed, cfl=args.cfl, progress=not args.quiet,
+                          max_particles=args.max_particles, max_substeps=args.max_substeps)
     print(f"wrote {info['out']}: {info['frames']} frames, {info['particles']} particles, "
           f"{info['substeps_per_frame']} substeps/frame of {info['dt']:.3g} s, {info['wall_s']:.1f} s wall "
           f"({info['substeps_per_s']:,.0f} substeps/s including compilation)")
@@ -224,18 +306,39 @@ def add_render_parser(sub):
     p.add_argument("--mp4", default=None, help="also write a video of every frame (needs the viz extra)")
     p.add_argument("--color", choices=("gamma_dot", "s"), default="gamma_dot",
                    help="colour by plastic strain rate (1/s, log) or deviatoric stress (Pa)")
-    p.add_argument("--panels", type=int, default=8, help="frames on the contact sheet (default 8)")
-    p.add_argument("--fps", type=float, default=20.0, help="video frames per second (default 20)")
+    p.add_argument("--panels", type=int_at_least(1), default=8, help="frames on the contact sheet (default 8)")
+    p.add_argument("--fps", type=positive_float, default=20.0, help="video frames per second (default 20)")
     p.set_defaults(func=cmd_render)
 
 
+# Picture and video formats the renderer writes (matplotlib's and ffmpeg's, chosen by the suffix).
+PICTURE_SUFFIXES = (".png", ".pdf", ".svg", ".jpg", ".jpeg")
+VIDEO_SUFFIXES = (".mp4", ".mov", ".mkv", ".avi")
+
+
+def _check_suffix(path, option, allowed):
+    suffix = Path(os.fspath(path)).suffix.lower()
+    if suffix not in allowed:
+        raise CLIError(f"{option} {os.fspath(path)!r} must end in one of {', '.join(allowed)} (the format is "
+                       f"chosen by the suffix), got {suffix or 'no suffix'!r}")
+
+
 def cmd_render(args) -> int:
+    from ._guards import check_output, require_extra
+    from ._trajectory import load_trajectory
     from .render import render_contact_sheet, render_video
 
-    render_contact_sheet(args.trajectory, args.out, n_frames=args.panels, color=args.color)
+    require_extra("jaxfoam render", "matplotlib", *(("imageio", "imageio_ffmpeg") if args.mp4 else ()))
+    traj = load_trajectory(args.trajectory)
+    check_output(args.out, "--out", {"the trajectory": args.trajectory, "--mp4": args.mp4})
+    _check_suffix(args.out, "--out", PICTURE_SUFFIXES)
+    if args.mp4:
+        check_output(args.mp4, "--mp4", {"the trajectory": args.trajectory})
+        _check_suffix(args.mp4, "--mp4", VIDEO_SUFFIXES)
+    render_contact_sheet(traj, args.out, n_frames=args.panels, color=args.color)
     print(f"wrote {args.out}")
     if args.mp4:
-        render_video(args.trajectory, args.mp4, fps=args.fps, color=args.color)
+        render_video(traj, args.mp4, fps=args.fps, color=args.color)
         print(f"wrote {args.mp4}")
     return 0
 
@@ -265,14 +368,23 @@ def add_demo_parser(sub):
 
 
 def cmd_demo(args) -> int:
+    from ._guards import check_output, require_extra
     from .render import render_contact_sheet, render_video
 
+    require_extra("jaxfoam demo", "matplotlib", *(("imageio", "imageio_ffmpeg") if args.mp4 else ()))
     scene = args.scene or find_scene(DEMO_SCENE)
-    out = Path(args.out)
+    _check_suffix(args.out, "--out", PICTURE_SUFFIXES)
+    if args.mp4:
+        _check_suffix(args.mp4, "--mp4", VIDEO_SUFFIXES)
+    out = Path(check_output(args.out, "--out", {"--scene": scene}))
     h5 = out.with_suffix(".h5")
+    check_output(h5, "the trajectory beside --out", {"--scene": scene})
+    if args.mp4:
+        check_output(args.mp4, "--mp4", {"--scene": scene, "--out": out, "the trajectory": h5})
     info = run_simulation(scene, h5, dx=args.dx, ppc=args.ppc, dtype=args.dtype, frames=args.frames,
                           duration=args.duration, mu=args.mu, sigma_y=args.sigma_y, eta=args.eta, m=args.m,
-                          seed=args.seed, cfl=args.cfl, progress=not args.quiet)
+                          seed=args.seed, cfl=args.cfl, progress=not args.quiet,
+                          max_particles=args.max_particles, max_substeps=args.max_substeps)
     print(f"wrote {h5}: {info['frames']} frames, {info['particles']} particles, {info['wall_s']:.1f} s wall")
     render_contact_sheet(h5, out, n_frames=DEMO_PANELS, color=args.color)
     print(f"wrote {out}")
@@ -301,8 +413,30 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _show_warning(command):
+    """Plausibility warnings as one line `jaxfoam <command>: warning: ...` (others as Python prints them)."""
+    import warnings
+
+    from ._scene import PlausibilityWarning
+
+    default = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, PlausibilityWarning):
+            sys.stderr.write(f"jaxfoam {command}: warning: {message}\n")
+        else:
+            default(message, category, filename, lineno, file, line)
+    return show
+
+
 def main(argv=None) -> int:
-    """Entry point of the `jaxfoam` command; returns the exit code (0 ok, 1 simulation failed, 2 bad input)."""
+    """Entry point of the `jaxfoam` command; returns the exit code (0 ok, 1 simulation failed, 2 bad input).
+
+    Bad input, a missing optional dependency or an unusable file ends with one line
+    `jaxfoam <command>: error: ...` and exit code 2, never a traceback.
+    """
+    import warnings
+
     import jax
 
     from ._simulate import SimulationError
@@ -311,15 +445,35 @@ def main(argv=None) -> int:
         # The command line is an application: float64 for --dtype float64 and fits (JAXFOAM_X64=0: off).
         jax.config.update("jax_enable_x64", True)
     parser = build_parser()
+    as_command = argv is None
     args = parser.parse_args(argv)
+    prog = f"jaxfoam {args.command}"
+    previous = warnings.showwarning
+    warnings.showwarning = _show_warning(args.command)
     try:
-        return int(args.func(args) or 0)
+        code = int(args.func(args) or 0)
+        if as_command and code == 143:
+            # A SIGTERM that interrupted a compilation leaves JAX in a state whose interpreter teardown
+            # can crash (exit -11): the fit log is closed by now, so end the process at once.
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(143)
+        return code
     except SimulationError as exc:
-        sys.stderr.write(f"\njaxfoam: simulation failed: {exc}\n")
+        sys.stderr.write(f"\n{prog}: simulation failed: {exc}\n")
         return 1
-    except (CLIError, ValueError, FileNotFoundError, ImportError) as exc:
-        sys.stderr.write(f"jaxfoam: error: {exc}\n")
+    except (CLIError, ValueError, ImportError) as exc:
+        sys.stderr.write(f"{prog}: error: {exc}\n")
         return 2
+    except OSError as exc:  # a file that cannot be read or written (permissions, a full disk)
+        name = f" {exc.filename!r}" if getattr(exc, "filename", None) else ""
+        sys.stderr.write(f"{prog}: error: file{name}: {exc.strerror or exc}\n")
+        return 2
+    except MemoryError:
+        sys.stderr.write(f"{prog}: error: out of memory; use a coarser grid, fewer frames or a smaller image\n")
+        return 2
+    finally:
+        warnings.showwarning = previous
 
 
 if __name__ == "__main__":

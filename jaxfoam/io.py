@@ -25,6 +25,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from ._errors import JaxfoamError
+from ._guards import discard, publish, temporary_path
 from ._scene import Scene, load_scene
 
 FORMAT = "jaxfoam-silhouettes"
@@ -454,13 +455,19 @@ def read_silhouettes(path: str | os.PathLike) -> Silhouettes:
         for name in ("masks", "times"):
             if name not in fh or not isinstance(fh[name], h5py.Dataset):
                 _fail(where, name, "required dataset missing")
-        masks = fh["masks"][()]
-        times = fh["times"][()]
+        def read(name):
+            try:
+                return fh[name][()]
+            except (OSError, ValueError) as exc:  # a chunk that fails to decompress: h5py's OSError
+                _fail(where, name, f"cannot be read: the file is damaged or truncated ({exc})")
+
+        masks = read("masks")
+        times = read("times")
         weights = None
         if "weights" in fh:
             if not isinstance(fh["weights"], h5py.Dataset):
                 _fail(where, "weights", "expected a dataset")
-            weights = fh["weights"][()]
+            weights = read("weights")
         if "camera" not in fh:
             _fail(where, "camera", "required group missing")
         camera = {k: fh["camera"].attrs[k] for k in fh["camera"].attrs}
@@ -494,6 +501,21 @@ def write_silhouettes(path: str | os.PathLike, masks, times, camera, scene, *, w
     where = os.fspath(path)
     given_weights = weights
     data = validate(masks, times, camera, scene, weights=weights, source=source, truth=truth, where=where)
+    if os.path.isdir(where):
+        raise SilhouetteFormatError(f"{where}: is a directory; give a file path")
+    tmp = temporary_path(where)  # written beside the output, then renamed: never half a file at `path`
+    try:
+        _write_h5(tmp, data, given_weights)
+    except BaseException:
+        discard(tmp)
+        raise
+    publish(tmp, where)
+    return data
+
+
+def _write_h5(where, data: Silhouettes, given_weights) -> None:
+    import h5py
+
     with h5py.File(where, "w") as fh:
         fh.attrs["format"] = FORMAT
         fh.attrs["version"] = VERSION
@@ -515,4 +537,3 @@ def write_silhouettes(path: str | os.PathLike, masks, times, camera, scene, *, w
             tr = fh.create_group("truth")
             for k, v in data.truth.items():
                 tr.attrs[k] = v
-    return data

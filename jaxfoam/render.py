@@ -15,6 +15,7 @@ import os
 
 import numpy as np
 
+from ._guards import VIZ_HINT, atomic_output
 from ._trajectory import SavedTrajectory, as_saved_trajectory
 from ._video import ffmpeg_subprocess
 
@@ -33,7 +34,6 @@ DOT_FRACTION = 1.5
 ELASTIC_GREY = "#b8b8b8"
 FLOOR_GREY = "#8c8c8c"
 PLATE_COLOR = "#5b4636"
-VIZ_HINT = "install the viz extra: pip install 'jaxfoam[viz]' (matplotlib, imageio, imageio-ffmpeg)"
 
 
 def _require_matplotlib():
@@ -220,8 +220,8 @@ def render_contact_sheet(traj, out_png, n_frames: int = 8, color: str = "gamma_d
     for ax in axes[:, 0]:
         ax.set_ylabel("y (m)", fontsize=7)
     style.colorbar(fig, axes.ravel().tolist())
-    os.makedirs(os.path.dirname(os.path.abspath(os.fspath(out_png))), exist_ok=True)
-    fig.savefig(out_png, dpi=dpi)
+    with atomic_output(out_png) as tmp:  # a killed render never leaves half a picture
+        fig.savefig(tmp, dpi=dpi)
     return os.fspath(out_png)
 
 
@@ -269,9 +269,8 @@ def render_video(traj, out_mp4, fps: int = 20, color: str = "gamma_dot", width_p
                       linewidths=0, zorder=3)
     fig.set_layout_engine("none")  # freeze the layout: every video frame has the same geometry
     plates = style.draw_plates(ax, float(traj.times[0]))
-    os.makedirs(os.path.dirname(os.path.abspath(os.fspath(out_mp4))), exist_ok=True)
-    with ffmpeg_subprocess():
-        with imageio.get_writer(os.fspath(out_mp4), fps=fps, codec="libx264", quality=7,
+    with ffmpeg_subprocess(), atomic_output(out_mp4) as tmp:
+        with imageio.get_writer(tmp, fps=fps, codec="libx264", quality=7,
                                 macro_block_size=16) as writer:
             for k in idx:
                 xy, c = style.values(k)

@@ -24,6 +24,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._guards import (DEFAULT_MAX_PARTICLES, DEFAULT_MAX_SUBSTEPS, check_dtype_range, check_output, check_particles,
+                      check_substeps, estimate_particles, substeps_per_frame)
 from ._params import FIT_FIELDS, Params
 from ._scene import DEFAULT_PPC, Scene, load_scene
 from ._model import CFL
@@ -40,6 +42,9 @@ MAX_SUPERSAMPLE = 8
 # between jittered particles (see KERNEL_SPACINGS in silhouette.py).
 FINE_KERNEL_SPACINGS = 1.5
 _splat = jax.jit(splat_density, static_argnames=("cfg",))
+# Largest image (pixels per frame) synth renders: a 4096 x 4096 image of the domain is far finer than a
+# fit uses; more is a pixel size given in the wrong unit.
+MAX_IMAGE_PIXELS = 4096 * 4096
 
 
 
@@ -98,7 +103,8 @@ def boundary_pixels(mask: np.ndarray) -> np.ndarray:
 def synthesize(scene: Scene | dict | str, params: dict, dx: float | None = None, ppc: int | None = None,
                frames: int = 16, duration: float = 1.0, pixel_size: float | None = None, noise: float = 0.05,
                drop_frames: float = 0.0, seed: int = 0, dtype=jnp.float64, first_mask: bool = False,
-               cfl: float = CFL, progress=None) -> Silhouettes:
+               cfl: float = CFL, progress=None, max_particles: int = DEFAULT_MAX_PARTICLES,
+               max_substeps: int = DEFAULT_MAX_SUBSTEPS) -> Silhouettes:
     """Simulate a scene and render it as tracked-video silhouettes.
 
     Args:
@@ -117,6 +123,7 @@ def synthesize(scene: Scene | dict | str, params: dict, dx: float | None = None,
       cfl: CFL number of the simulation's time step (default the simulator's, 0.3); data made with
         another time step than the fit's emulate another simulator's numerics.
       progress: optional callable(str) for status lines.
+      max_particles, max_substeps: the run's budgets (BudgetError, checked before any work).
     Returns the validated `Silhouettes` (write it with `.write(path)`).
     """
     say = progress or (lambda msg: None)
@@ -144,8 +151,26 @@ def synthesize(scene: Scene | dict | str, params: dict, dx: float | None = None,
         raise ValueError(f"noise must be a probability in [0, 1], got {noise}")
     if not 0.0 <= drop_frames < 1.0:
         raise ValueError(f"drop_frames must be a fraction in [0, 1), got {drop_frames}")
-    camera, shape = camera_covering(scene, pixel_size)
+    if not (isinstance(seed, int) and seed >= 0):
+        raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
+    if ppc < 1:
+        raise ValueError(f"ppc must be an integer >= 1, got {ppc!r}")
+    if not (dx > 0 and math.isfinite(dx)):
+        raise ValueError(f"dx must be a positive grid spacing in m, got {dx!r}")
+    if not (0 < cfl <= 1):
+        raise ValueError(f"cfl must be in (0, 1], got {cfl!r}")
     times = np.linspace(0.0, float(duration), frames)
+    dtype_name = jnp.dtype(dtype).name
+    check_dtype_range(dict(params), dtype_name)
+    estimate = estimate_particles(scene, dx, ppc)
+    if estimate is not None:
+        check_particles(estimate, d, jnp.dtype(dtype).itemsize, max_particles, dx=dx, ppc=ppc)
+    camera, shape = camera_covering(scene, pixel_size)
+    if shape[0] * shape[1] > MAX_IMAGE_PIXELS:
+        raise ValueError(f"pixel_size {pixel_size:g} m makes {shape[0]}x{shape[1]} pixel images of the domain, over "
+                         f"{MAX_IMAGE_PIXELS:,} pixels: the pixel size is in m (not mm or um)")
+    per_frame = substeps_per_frame(scene, p, dx, cfl, times[1:])
+    check_substeps(per_frame, frames - 1, max_substeps, span=float(duration), dt=float(times[1]) / per_frame)
 
     t0 = time.perf_counter()
     sim = Simulator(scene, times[1:], p, dx, ppc, dtype=dtype, cfl=cfl, seed=seed)
@@ -191,6 +216,8 @@ def synthesize(scene: Scene | dict | str, params: dict, dx: float | None = None,
 
 def add_synth_parser(subparsers) -> argparse.ArgumentParser:
     """Add the `synth` subcommand to an argparse subparsers object (runs via args.func(args))."""
+    from .cli import _add_budget_options, float_in, int_at_least, positive_float
+
     ap = subparsers.add_parser(
         "synth", help="simulate a scene and write synthetic silhouette data (with /truth)",
         description="Simulate SCENE.json with the given parameters and render it as tracked-video silhouettes "
@@ -198,32 +225,39 @@ def add_synth_parser(subparsers) -> argparse.ArgumentParser:
     ap.add_argument("scene", help="scene JSON file (initial_shape box or ellipse)")
     ap.add_argument("--params", required=True, help="mu=..,sigma_y=..,eta=..,m=.. (Pa, Pa, Pa s^m, -)")
     ap.add_argument("--out", required=True, help="output silhouette file (.h5)")
-    ap.add_argument("--dx", type=float, default=None, help="grid spacing, m (default: the largest domain extent / 64 in 2D, / 32 in 3D)")
-    ap.add_argument("--ppc", type=int, default=None, help="particles per cell (default 4 in 2D, 8 in 3D)")
-    ap.add_argument("--frames", type=int, default=16, help="frames on [0, duration], before dropping (default 16)")
-    ap.add_argument("--duration", type=float, default=1.0, help="simulated time, s (default 1)")
-    ap.add_argument("--pixel-size", type=float, default=None, help="m per pixel (default dx / 2)")
-    ap.add_argument("--noise", type=float, default=0.05,
-                    help="flip probability of pixels next to the foam boundary (default 0.05)")
-    ap.add_argument("--drop-frames", type=float, default=0.0,
-                    help="fraction of frames after the first removed at random (default 0)")
-    ap.add_argument("--seed", type=int, default=0, help="seed of sampling, noise and dropped frames")
+    ap.add_argument("--dx", type=positive_float, default=None,
+                    help="grid spacing, m (default: the largest domain extent / 64 in 2D, / 32 in 3D)")
+    ap.add_argument("--ppc", type=int_at_least(1), default=None, help="particles per cell (default 4 in 2D, 8 in 3D)")
+    ap.add_argument("--frames", type=int_at_least(2), default=16,
+                    help="frames on [0, duration], before dropping (default 16)")
+    ap.add_argument("--duration", type=positive_float, default=1.0, help="simulated time, s (default 1)")
+    ap.add_argument("--pixel-size", type=positive_float, default=None, help="m per pixel (default dx / 2)")
+    ap.add_argument("--noise", type=float_in(0.0, 1.0), default=0.05,
+                    help="flip probability of pixels next to the foam boundary, in [0, 1] (default 0.05)")
+    ap.add_argument("--drop-frames", type=float_in(0.0, 1.0, hi_open=True), default=0.0,
+                    help="fraction of frames after the first removed at random, in [0, 1) (default 0)")
+    ap.add_argument("--seed", type=int_at_least(0), default=0, help="seed of sampling, noise and dropped frames")
     ap.add_argument("--dtype", choices=("float32", "float64"), default="float64")
-    ap.add_argument("--cfl", type=float, default=CFL,
+    ap.add_argument("--cfl", type=float_in(0.0, 1.0, lo_open=True), default=CFL,
                     help=f"CFL number of the simulation's time step, in (0, 1] (default {CFL})")
     ap.add_argument("--first-mask", action="store_true",
                     help="record initial_shape 'first_mask' in the file's scene (fits start from the first mask)")
+    _add_budget_options(ap)
     ap.set_defaults(func=run_synth)
     return ap
 
 
 def run_synth(args) -> int:
     """Run the `synth` subcommand from parsed arguments; returns the exit status."""
-    data = synthesize(args.scene, parse_params(args.params), dx=args.dx, ppc=args.ppc, frames=args.frames,
+    scene = load_scene(args.scene)
+    params = parse_params(args.params)
+    check_output(args.out, "--out", {"the scene": args.scene})
+    data = synthesize(scene, params, dx=args.dx, ppc=args.ppc, frames=args.frames,
                       duration=args.duration, pixel_size=args.pixel_size, noise=args.noise,
                       drop_frames=args.drop_frames, seed=args.seed,
                       dtype=jnp.float32 if args.dtype == "float32" else jnp.float64,
-                      first_mask=args.first_mask, cfl=args.cfl, progress=print)
+                      first_mask=args.first_mask, cfl=args.cfl, progress=print,
+                      max_particles=args.max_particles, max_substeps=args.max_substeps)
     data.write(args.out)
     T, H, W = data.shape
     print(f"wrote {args.out}: {T} frames of {H}x{W} pixels ({data.camera.pixel_size:g} m/pixel), "

@@ -212,19 +212,24 @@ def _read_frames(path, fps, every, downsample, max_frames):
             raise ValueError(f"video: directory {path!r} holds no image ({', '.join(IMAGE_EXTENSIONS)})")
         if fps is None:
             raise ValueError("fps: an image directory has no frame rate; pass --fps")
-        source = (iio.imread(os.path.join(path, n)) for n in names)
+        source = (_read_image(iio, os.path.join(path, n)) for n in names)
     else:
         if not os.path.exists(path):
             raise ValueError(f"video: file {path!r} does not exist")
+        if os.path.getsize(path) == 0:
+            raise ValueError(f"video: file {path!r} is empty (0 bytes)")
         if fps is None:
-            meta = iio.immeta(path)
+            try:
+                meta = iio.immeta(path)
+            except Exception as exc:  # imageio raises many kinds for an unreadable file
+                raise ValueError(f"video: cannot read {path!r} as a video or GIF ({type(exc).__name__}: {exc})") from exc
             if meta.get("fps"):
                 fps = float(meta["fps"])
             elif meta.get("duration"):  # GIF: milliseconds per frame
                 fps = 1000.0 / float(meta["duration"])
             else:
                 raise ValueError(f"fps: {path!r} does not say its frame rate; pass --fps")
-        source = iio.imiter(path)
+        source = _frames_of(iio, path)
     if not (fps > 0 and math.isfinite(fps)):
         raise ValueError(f"fps must be > 0, got {fps}")
     kept = []
@@ -246,6 +251,23 @@ def _read_frames(path, fps, every, downsample, max_frames):
     if not kept:
         raise ValueError(f"video: {path!r} holds no frame")
     return np.stack(kept), float(fps)
+
+
+def _read_image(iio, path):
+    try:
+        return iio.imread(path)
+    except Exception as exc:  # imageio raises many kinds for an unreadable file
+        raise ValueError(f"video: cannot read image {path!r} ({type(exc).__name__}: {exc})") from exc
+
+
+def _frames_of(iio, path):
+    """The frames of a video file; a file imageio cannot decode is reported with its name."""
+    try:
+        yield from iio.imiter(path)
+    except ValueError:
+        raise
+    except Exception as exc:  # imageio and its plugins raise OSError, RuntimeError, IndexError...
+        raise ValueError(f"video: cannot read {path!r} as a video or GIF ({type(exc).__name__}: {exc})") from exc
 
 
 def foreground(frames: np.ndarray, background: str | np.ndarray = "median", threshold: float | None = None,
@@ -351,26 +373,30 @@ def add_track_parser(subparsers) -> argparse.ArgumentParser:
         description="Turn a video (or GIF, or a directory of images) of foam in front of a static background "
                     "into the silhouette format: background difference or brightness threshold, "
                     "morphological clean-up, largest component, plate pixels ignored.")
+    from .cli import float_in, int_at_least, positive_float
+
     ap.add_argument("video", help="video or GIF file, or a directory of images (then --fps)")
     ap.add_argument("--out", required=True, help="output silhouette file (.h5)")
     ap.add_argument("--scene", required=True, help="scene JSON file describing the experiment")
-    ap.add_argument("--pixel-size", type=float, required=True, help="metres per pixel of the video")
-    ap.add_argument("--origin", type=float, nargs=2, required=True, metavar=("X0", "Y0"),
+    ap.add_argument("--pixel-size", type=positive_float, required=True, help="metres per pixel of the video")
+    ap.add_argument("--origin", type=float_in(), nargs=2, required=True, metavar=("X0", "Y0"),
                     help="world position (m) of the image's bottom-left corner")
     ap.add_argument("--background", default="median",
                     help="median | first | none (brightness threshold) | PATH of an image of the empty scene")
-    ap.add_argument("--threshold", type=float, default=None,
+    ap.add_argument("--threshold", type=float_in(0.0, 1.0, lo_open=True, hi_open=True), default=None,
                     help="foreground threshold in (0, 1) of full intensity (default: Otsu's method)")
     ap.add_argument("--invert", action="store_true", help="with --background none: foam darker than the background")
-    ap.add_argument("--fps", type=float, default=None, help="frame rate (default: from the file)")
-    ap.add_argument("--t0", type=float, default=0.0, help="time of the first frame since the scene's start, s")
-    ap.add_argument("--every", type=int, default=1, help="keep one frame in EVERY")
-    ap.add_argument("--downsample", type=int, default=1, help="average-pool factor (pixel size grows by it)")
-    ap.add_argument("--max-frames", type=int, default=None, help="stop after this many kept frames")
-    ap.add_argument("--open", type=int, default=OPEN_RADIUS, help=f"opening radius, pixels (default {OPEN_RADIUS})")
-    ap.add_argument("--close", type=int, default=CLOSE_RADIUS, help=f"closing radius, pixels (default {CLOSE_RADIUS})")
+    ap.add_argument("--fps", type=positive_float, default=None, help="frame rate (default: from the file)")
+    ap.add_argument("--t0", type=float_in(0.0), default=0.0, help="time of the first frame since the scene's start, s")
+    ap.add_argument("--every", type=int_at_least(1), default=1, help="keep one frame in EVERY")
+    ap.add_argument("--downsample", type=int_at_least(1), default=1, help="average-pool factor (pixel size grows by it)")
+    ap.add_argument("--max-frames", type=int_at_least(1), default=None, help="stop after this many kept frames")
+    ap.add_argument("--open", type=int_at_least(0), default=OPEN_RADIUS,
+                    help=f"opening radius, pixels (default {OPEN_RADIUS})")
+    ap.add_argument("--close", type=int_at_least(0), default=CLOSE_RADIUS,
+                    help=f"closing radius, pixels (default {CLOSE_RADIUS})")
     ap.add_argument("--keep-holes", action="store_true", help="do not fill holes in the silhouette")
-    ap.add_argument("--plate-margin", type=int, default=PLATE_MARGIN,
+    ap.add_argument("--plate-margin", type=int_at_least(-1), default=PLATE_MARGIN,
                     help=f"dilation of the plates' footprint (weight 0), pixels (default {PLATE_MARGIN}); "
                          "-1 keeps plate pixels")
     ap.set_defaults(func=run_track)
@@ -379,13 +405,26 @@ def add_track_parser(subparsers) -> argparse.ArgumentParser:
 
 def run_track(args) -> int:
     """Run the `track` subcommand from parsed arguments; returns the exit status."""
+    from ._guards import check_output, require_extra
+
+    video = os.fspath(args.video)
+    image_input = os.path.isdir(video) or video.lower().endswith(IMAGE_EXTENSIONS + (".gif",))
+    require_extra("jaxfoam track", "imageio", *(() if image_input else ("imageio_ffmpeg",)))
+    load_scene(args.scene)
+    if not os.path.exists(video):
+        raise ValueError(f"video: file {video!r} does not exist")
+    check_output(args.out, "--out", {"the video": video, "--scene": args.scene,
+                                     "--background": None if args.background in BACKGROUNDS else args.background})
     background = args.background
     if background not in BACKGROUNDS:
         if not os.path.exists(background):
             raise ValueError(f"--background must be one of {BACKGROUNDS} or an image file, got {background!r}")
         import imageio.v3 as iio
 
-        img = np.asarray(iio.imread(background))
+        try:
+            img = np.asarray(iio.imread(background))
+        except Exception as exc:  # imageio raises many kinds for an unreadable file
+            raise ValueError(f"--background: cannot read {background!r} as an image ({type(exc).__name__}: {exc})") from exc
         img = img[:, :, None] if img.ndim == 2 else img[:, :, :3]
         scale = 65535.0 if img.dtype == np.uint16 else 255.0 if img.dtype.kind in "ui" else 1.0
         background = _pool(img, args.downsample) / scale

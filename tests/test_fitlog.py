@@ -252,3 +252,86 @@ def test_zero_time_budget_evaluates_nothing_and_bad_budgets_are_refused(tmp_path
             F.minimize(ROSEN_VG, X0, F.LBFGS(), with_grad=True, max_time=bad)
     with pytest.raises(ValueError, match="max_time"):
         F.multistart(lambda x0, **kw: None, np.zeros((1, 2)), max_time=-1.0)
+
+
+# ------------------------------------------------------------------------------------------------
+# Damaged logs are refused (FitLogError naming the file), never resumed to another answer
+# ------------------------------------------------------------------------------------------------
+
+def _killed_lm_log(path, k=3):
+    with pytest.raises(Interrupt):
+        CASES["lm"](DECAY_RJ, log=path, callback=interrupt_after(k))
+    return path
+
+
+def _set_x(f, row, value):
+    ds = f["runs/0000/x"]
+    x = ds[row]
+    x[0] = value
+    ds[row] = x
+
+
+DAMAGES = {
+    # name: (edit of the file, words of the error)
+    "truncated to 60%": (lambda p: p.write_bytes(p.read_bytes()[:int(0.6 * p.stat().st_size)]),
+                         ["cannot be read as a fit log"]),
+    "a text file": (lambda p: p.write_text("not a log\n"), ["cannot be read as a fit log"]),
+    "claims 99 rows": (lambda p: _h5(p, lambda f: f["runs/0000"].attrs.__setitem__("rows", 99)),
+                       ["claims 99 committed rows", "holds 4"]),
+    "last parameters altered": (lambda p: _h5(p, lambda f: _set_x(f, 3, 0.123)), ["row 3", "checksum"]),
+    "last parameters NaN": (lambda p: _h5(p, lambda f: _set_x(f, 3, np.nan)), ["row 3", "checksum"]),
+    "checksums removed": (lambda p: _h5(p, lambda f: f["runs/0000"].__delitem__("checksum")), ["checksums"]),
+    "Jacobian slot altered": (lambda p: _h5(p, _alter_slot), ["slot", "checksum"]),
+}
+
+
+def _alter_slot(f):
+    """Change one element of a large leaf in the slot of the last committed row (row 3: slot 1)."""
+    slot = f["runs/0000/slots/1"]
+    ds = slot[sorted(slot)[0]]
+    a = ds[()]
+    a.flat[0] += 1.0
+    ds[...] = a
+
+
+def _h5(path, edit):
+    with h5py.File(path, "a") as f:
+        edit(f)
+
+
+@pytest.mark.parametrize("name", sorted(DAMAGES))
+def test_damaged_log_is_refused(tmp_path, name):
+    edit, words = DAMAGES[name]
+    path = _killed_lm_log(tmp_path / "fit.h5")
+    edit(path)
+    with pytest.raises(F.FitLogError) as info:
+        CASES["lm"](DECAY_RJ, log=path, resume=True)
+    msg = str(info.value)
+    assert str(path) in msg and all(w in msg for w in words), msg
+    assert "without --resume" in msg or "another log" in msg
+
+
+def test_nan_parameters_with_a_matching_checksum_are_refused(tmp_path):
+    """Even a row whose checksum was recomputed cannot resume from non-finite parameters."""
+    from fitting.fitlog import _digest
+
+    path = _killed_lm_log(tmp_path / "fit.h5")
+
+    def edit(f):
+        g = f["runs/0000"]
+        _set_x(f, 3, np.nan)
+        names = ["iteration", "x", "loss", "evaluations", "nonfinite", "time"] + [f"state/{n}" for n in g["state"]]
+        g["checksum"][3] = _digest(sorted((n, g[n][3]) for n in names))
+
+    _h5(path, edit)
+    with pytest.raises(F.FitLogError, match=r"row 3 holds non-finite parameters"):
+        CASES["lm"](DECAY_RJ, log=path, resume=True)
+
+
+def test_log_rows_carry_checksums_and_an_intact_log_resumes(tmp_path):
+    path = _killed_lm_log(tmp_path / "fit.h5")
+    with h5py.File(path, "r") as f:
+        assert f.attrs["version"] == 2 and f["runs/0000/checksum"].shape == (4,)
+        assert np.all(f["runs/0000/checksum"][()] != 0)
+    ref = CASES["lm"](DECAY_RJ)
+    assert_same_solution(CASES["lm"](DECAY_RJ, log=path, resume=True), ref)

@@ -168,8 +168,10 @@ def test_cli_reports_bad_input_with_exit_code_2(tmp_path, capsys):
     bad.write_text(json.dumps(scene))
     assert cli.main(["simulate", str(bad), "--out", str(tmp_path / "x.h5")]) == 2
     assert "unknown key(s) ['colour']" in capsys.readouterr().err
-    assert cli.main(["simulate", str(CLI_SCENE), "--out", str(tmp_path / "x.h5"), "--sigma-y", "-1"]) == 2
-    assert "Params.sigma_y must be >= 0" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as info:  # an option's range is checked as it is parsed
+        cli.main(["simulate", str(CLI_SCENE), "--out", str(tmp_path / "x.h5"), "--sigma-y", "-1"])
+    assert info.value.code == 2
+    assert "argument --sigma-y: must be a finite number >= 0 Pa, got '-1'" in capsys.readouterr().err
     (tmp_path / "junk.h5").write_text("junk")
     assert cli.main(["render", str(tmp_path / "junk.h5"), "--out", str(tmp_path / "x.png")]) == 2
     assert "not an HDF5 file" in capsys.readouterr().err
