@@ -301,7 +301,7 @@ def test_discretization_check_predicts_the_refit_on_the_finer_grid(slump, monkey
     assert details["refit_loss"][1] < details["refit_loss"][0]
     # A measured move larger than both estimates sets the error; a non-finite one makes it infinite.
     for fake, expect in ((0.5, GCI_SAFETY * 0.5 / (1 - DX_CHECK_RATIO)), (math.nan, math.inf)):
-        monkeypatch.setattr(calibrate_module, "refit_move", lambda *a, v=fake, **k: dict(move=np.array([v]), iterations=1,
+        monkeypatch.setattr(calibrate_module.check, "refit_move", lambda *a, v=fake, **k: dict(move=np.array([v]), iterations=1,
                                                                            reason="x", loss=(1.0, 1.0)))
         e, sh = discretization_error(problem, z, J, r=r, refit=1)
         assert e[0] == pytest.approx(expect, rel=1e-12) and (sh[0] == 0.5 if fake == 0.5 else np.isnan(sh[0]))
@@ -541,7 +541,7 @@ def test_a_stopped_fit_says_how_to_resume(slump, tmp_path, capsys, monkeypatch):
             os.kill(os.getpid(), signal.SIGTERM)
 
     original = cal.calibrate
-    monkeypatch.setattr(cal, "calibrate", lambda *a, **kw: original(*a, callback=stop_after_two, **kw))
+    monkeypatch.setattr(cal.cli, "calibrate", lambda *a, **kw: original(*a, callback=stop_after_two, **kw))
     before = signal.getsignal(signal.SIGTERM)
     code = main(["fit", str(path), "--out", str(tmp_path / "stopped.json"), "--log", str(log), "--no-plots",
                  "--no-dx-check"] + FIT_ARGS)

@@ -182,7 +182,7 @@ def test_tiny_fit_with_resampling_and_fracture_runs_end_to_end(data, monkeypatch
         seen.append((p.dx, p.sim.resample, p.sim.fracture))
         raise Stop
 
-    monkeypatch.setattr(cal, "build_problem", spy)
+    monkeypatch.setattr(cal.check, "build_problem", spy)  # the discretization check builds its problem there
     problem = build_problem(silh, _settings())
     with pytest.raises(Stop):
         cal.discretization_error(problem, np.zeros(2), np.zeros((1, 2)))
