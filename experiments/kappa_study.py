@@ -15,7 +15,7 @@ across the domain width, 4 particles per cell, CFL 0.3, float64), and is compare
 - stress change: || s - s_ref || / || s_ref || of the deviatoric stress per cell (as in pareto.py);
 - the time step dt and substep count of the run (CFL 0.3 with this mu), the dt the fitter would use
   (its time step is set by the stiffest admissible shear modulus, mu = 2000 Pa, see
-  jaxfoam/calibrate.py `build_problem`), and the rollout wall time (compile excluded).
+  jaxfoam/calibrate/problem.py `build_problem`), and the rollout wall time (compile excluded).
 
 Usage: python -m experiments kappa_study [--quick]. Writes experiments/results/kappa_study[_quick].png/.md.
 """

@@ -1,7 +1,7 @@
 """The fitter's defaults are the ones experiments/MODEL_CHOICE.md recommends from the measured studies.
 
 Contract checked: the machine-readable `defaults` block of MODEL_CHOICE.md and the named constants of
-jaxfoam/calibrate.py state the same grid (cells across the largest domain extent), particles per cell,
+jaxfoam/calibrate/settings.py state the same grid (cells across the largest domain extent), particles per cell,
 CFL number and precision, and the fitter (FitSettings, `jaxfoam fit`, `build_problem`) actually uses them,
 so the written advice and the code cannot drift apart.
 """
