@@ -243,7 +243,9 @@ def return_map(bbar_e: jax.Array, f: jax.Array, params: Params, dt,
     Returns:
       (bbar_e_new (..., 3, 3) with det 1, s_new (...) deviatoric stress magnitude mu ||dev bbar_e_new||, Pa).
     Elastic states (Phi(s_pre) <= 0) come back as the elastic predictor, bit for bit.
+    Concrete parameters out of range raise ValueError naming the field (`Params.validate`).
     """
+    params.validate()
     bbar_new, s_new, _ = _return_map_with_rate(bbar_e, f, params, dt, tuning)
     return bbar_new, s_new
 

@@ -17,6 +17,9 @@ from ._xla_cpu import Tuning, tuning_for
 # CFL number C in dt <= C dx / (c + max|v|): 0.3 stays stable with margin across the stiffness
 # range of foams (model.md suggests 0.3-0.5; experiments measure where it fails).
 CFL = 0.3
+# Courant number dt (c + v_max) / dx (v_max: the model's speed bound) above which a rollout is refused
+# (concrete parameters) or flagged (traced ones): past one cell per substep the explicit update is unstable.
+MAX_COURANT = 1.0
 # Free-fall speed bound uses the domain height; this factor leaves room for splashes and rebounds.
 SPEED_SAFETY = 1.5
 
@@ -84,6 +87,7 @@ class Model:
       substeps: substeps per frame of the frame plan, or None (a rollout then picks them from its
         frame times, which must be concrete).
       max_speed: the material speed bound the CFL step allows for, m/s (None when dt was set by hand).
+      cfl: the CFL number dt_cfl was chosen with (None when dt was set by hand).
       dtype: "float32" or "float64".
       ppc: particles per cell for sampling (`Model.sample`).
       colliders: extra colliders (e.g. `jaxfoam.sdf.SDFCollider`), applied on the grid in order.
@@ -98,6 +102,7 @@ class Model:
     dt_cfl: float | None = None
     substeps: int | None = dataclasses.field(metadata=dict(static=True), default=None)
     max_speed: float | None = dataclasses.field(metadata=dict(static=True), default=None)
+    cfl: float | None = dataclasses.field(metadata=dict(static=True), default=None)
     dtype: str = dataclasses.field(metadata=dict(static=True), default="float64")
     ppc: int | None = dataclasses.field(metadata=dict(static=True), default=None)
     colliders: tuple = dataclasses.field(metadata=dict(static=True), default=())
@@ -112,6 +117,13 @@ class Model:
     @property
     def dx(self) -> float:
         return self.grid.dx
+
+    def courant_limit(self):
+        """The Courant number dt (c + max_speed) / dx a rollout may reach: MAX_COURANT, or the model's own
+        at its reference parameters when its dt was forced past that (an explicit substeps or dt)."""
+        if self.dt_cfl is None or self.cfl is None:
+            return MAX_COURANT
+        return jnp.maximum(MAX_COURANT, self.dt / self.dt_cfl * self.cfl * (1.0 + 1e-6))
 
     def replace(self, **changes) -> "Model":
         return dataclasses.replace(self, **changes)
@@ -178,6 +190,6 @@ def make_model(scene: Scene, dx: float, *, params_ref: Params, frame_times=None,
         step = dt_cfl if dt is None else float(dt)
     # Scene data (gravity, plate motion) in the simulation's precision.
     scene = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), scene)
-    return Model(scene=scene, dt=float(step), dt_cfl=float(dt_cfl), grid=grid, substeps=n, max_speed=speed,
+    return Model(scene=scene, dt=float(step), dt_cfl=float(dt_cfl), grid=grid, substeps=n, max_speed=speed, cfl=float(cfl),
                  dtype=dtype.name, ppc=ppc, colliders=colliders, fracture=fracture, resample=resample,
                  tuning=tuning_for() if tuning is None else tuning)

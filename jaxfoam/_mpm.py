@@ -241,6 +241,8 @@ def step(model: Model, state: State, params: Params) -> State:
     """The pure MLS-MPM step: `state` advanced by model.dt s under `params` (`jax.jit(jaxfoam.step)`).
 
     Returns the state in the form it was given in (arrays, or the component form a loop of steps runs
-    faster on: `jaxfoam._xla_cpu.layout.to_components`)."""
+    faster on: `jaxfoam._xla_cpu.layout.to_components`). Concrete parameters out of range raise
+    ValueError naming the field (`Params.validate`; traced ones under jit pass)."""
+    params.validate()
     new = substep(model, to_components(state), params)
     return new if isinstance(state.F, tuple) else from_components(new)

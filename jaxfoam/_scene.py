@@ -6,7 +6,6 @@ import json
 import math
 import os
 import warnings
-from typing import Any
 
 import jax
 import jax.numpy as jnp

@@ -496,7 +496,6 @@ def write_silhouettes(path: str | os.PathLike, masks, times, camera, scene, *, w
       source: free text (how the data was made).
       truth: parameters that generated synthetic data (mu, sigma_y, eta, m, kappa, ...), or None.
     """
-    import h5py
 
     where = os.fspath(path)
     given_weights = weights

@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._constitutive import det
-from ._grid import Grid, _flat_index, _offsets, _stencil, _strides
+from ._grid import Grid, _offsets, _stencil, _strides
 from ._scene import DEFAULT_PPC
 from ._state import State
 from .sdf import material_sdf

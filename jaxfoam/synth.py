@@ -30,7 +30,7 @@ from ._params import FIT_FIELDS, Params
 from ._scene import DEFAULT_PPC, Scene, load_scene
 from ._model import CFL
 from ._simulate import Simulator
-from .io import Camera, Silhouettes, camera_covering, plate_footprint, validate, write_silhouettes
+from .io import Camera, Silhouettes, camera_covering, plate_footprint, validate
 from .silhouette import HALF_DENSITY, make_render_config, particle_spacing, splat_density
 
 # Sub-pixels per particle spacing of the supersampled rendering: 2 resolves the kernel's edge well

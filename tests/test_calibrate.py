@@ -464,6 +464,28 @@ def test_threaded_jacobian_columns_match_sequential_groups_and_finite_difference
     assert np.linalg.norm(fd - J[:, 2]) <= 1e-4 * np.linalg.norm(J[:, 2])
 
 
+def test_fit_jacobian_takes_an_adjoint(slump):
+    """build_problem(adjoint=...): ForwardMode("vmap") (every tangent through one rollout) gives the
+    default route's Jacobian to round-off (1e-10 relative in norm); a reverse-mode adjoint is refused
+    before any work, naming the argument."""
+    import dataclasses
+
+    import jaxfoam as jf
+
+    full = read_silhouettes(slump[0])
+    data = dataclasses.replace(full, masks=full.masks[:2], times=full.times[:2], weights=full.weights[:2])
+    settings = FitSettings(dx=FIT_DX, fixed={"mu": 150.0, "eta": 4.0}, starts=1)
+    with pytest.raises(CalibrationError, match="adjoint: the fit's Jacobian is taken in forward mode"):
+        build_problem(data, settings, adjoint=jf.HandWritten())
+    default = build_problem(data, settings)
+    batched = build_problem(data, settings, adjoint=jf.ForwardMode("vmap"))
+    assert batched.jacobian_threads == 1 and default.jacobian_adjoint == jf.adjoint.DEFAULT_JACOBIAN
+    z = np.asarray(default.transform.to_unconstrained({"sigma_y": 30.0, "m": 0.7}))
+    (r0, j0), (r1, j1) = (tuple(np.asarray(a) for a in p.residual_and_jacobian(z)) for p in (default, batched))
+    np.testing.assert_array_equal(r0, r1)
+    assert np.linalg.norm(j1 - j0) <= 1e-10 * np.linalg.norm(j0) and np.linalg.norm(j0) > 0
+
+
 def test_float32_fit_problem_matches_float64_to_single_precision(slump):
     """`FitSettings.dtype = "float32"` (`jaxfoam fit --dtype float32`): the same problem's residual and
     Jacobian columns agree with float64's to single precision after the rollout (measured 2.8e-5 for r

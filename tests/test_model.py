@@ -118,7 +118,7 @@ def test_rollout_checks_concrete_inputs_before_any_compute(drop):
     _, frames, health = jax.jit(lambda p: jf.rollout(model, s0, p, TIMES))(stiff)
     assert not bool(np.asarray(health[0])[:, -1].any())
     sim = jf.Simulator(model.scene, TIMES, PARAMS, dx=0.02)
-    with pytest.raises(jf.SimulationError, match="Courant number > 1"):
+    with pytest.raises(jf.SimulationError, match="Courant number above the model's limit"):
         sim.check(jax.device_get(frames), health)
     ok = jax.jit(lambda p: jf.rollout(model, s0, p, TIMES))(PARAMS)[2]
     assert bool(np.asarray(ok[0]).all())
@@ -175,3 +175,18 @@ def test_import_leaves_the_jax_configuration_alone():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     assert "dtype float64 needs jax.config.update('jax_enable_x64', True)" in out.stdout
+
+
+def test_step_and_return_map_refuse_parameters_out_of_range(drop):
+    """The Python API refuses what the command line refuses: concrete parameters out of range are a
+    ValueError naming the field, from jaxfoam.step and jaxfoam.return_map; under jit they pass untested
+    (no values), and a valid call still runs."""
+    model, s0 = drop
+    with pytest.raises(ValueError, match="Params.eta must be >= 0 Pa s\\^m, got -1.0"):
+        jf.step(model, s0, PARAMS.replace(eta=-1.0))
+    bbar = jnp.eye(3)[None]
+    f = jnp.eye(2)[None] * 1.01
+    with pytest.raises(ValueError, match=r"Params.m must be in \(0, 5\], got 0.0"):
+        jf.return_map(bbar, f, PARAMS.replace(m=0.0), 1e-3)
+    b, s = jf.return_map(bbar, f, PARAMS, 1e-3)
+    assert np.isfinite(np.asarray(b)).all() and float(s[0]) >= 0.0

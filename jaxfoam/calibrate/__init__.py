@@ -31,6 +31,7 @@ Units: SI throughout (m, s, kg, Pa); fitted coordinates are dimensionless.
 """
 from __future__ import annotations
 
+from .._params import FIT_FIELDS as FIT_FIELDS
 from .settings import (ADAM_DECAY as ADAM_DECAY, ADAM_LEARNING_RATE as ADAM_LEARNING_RATE,
                        BOUND_SPAN_FRACTION as BOUND_SPAN_FRACTION,
                        CORRELATION_WINDOW_SUPPORTS as CORRELATION_WINDOW_SUPPORTS, CalibrationError as CalibrationError,
@@ -47,6 +48,7 @@ from .settings import (ADAM_DECAY as ADAM_DECAY, ADAM_LEARNING_RATE as ADAM_LEAR
                        _as_config as _as_config, _check_config as _check_config)
 from .result import FitResult as FitResult, _format_params as _format_params
 from .problem import (CalibrationProblem as CalibrationProblem, _Static as _Static,
+                      _residual_and_jacfwd as _residual_and_jacfwd,
                       _data_fingerprint as _data_fingerprint, _observed as _observed, _params_from as _params_from,
                       _positions as _positions, _residual as _residual, _residual_and_columns as _residual_and_columns,
                       _residual_and_jacobian as _residual_and_jacobian, _residual_jit as _residual_jit,

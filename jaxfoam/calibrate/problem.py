@@ -20,7 +20,7 @@ from .._params import FIT_FIELDS, Params
 from .._scene import Scene, init_state
 from .._rollout import rollout
 from .._simulate import Simulator
-from ..adjoint import DEFAULT_JACOBIAN, Autodiff, threaded_columns
+from ..adjoint import DEFAULT_JACOBIAN, Autodiff, ForwardMode, threaded_columns
 from ..io import Camera, Silhouettes, plate_footprint
 from ..silhouette import (RenderConfig, make_render_config, make_target, particle_spacing,
                          pyramid, render_frames, residuals)
@@ -115,10 +115,28 @@ def _residual_and_columns(z, basis, static, base, model, state0, frame_times, ta
 
 
 @functools.partial(jax.jit, static_argnames=("static",))
+def _residual_and_jacfwd(z, static, base, model, state0, frame_times, target):
+    """(r (n,), dr/dz (n, p)) with every tangent through one rollout (`jax.jacfwd`, ForwardMode("vmap"))."""
+
+    def fn(zz):
+        r = _residual(zz, static, base, model, state0, frame_times, target)
+        return r, r
+
+    J, r = jax.jacfwd(fn, has_aux=True)(z)
+    return r, J
+
+
+@functools.partial(jax.jit, static_argnames=("static",))
 def _positions(z, static, base, model, state0, frame_times):
     params = _params_from(z, static, base)
     _, frames, health = rollout(model, state0, params, frame_times, observe=observe_positions, adjoint=Autodiff())
     return frames["x"], frames["active"], health
+
+
+def _check_jacobian_adjoint(adjoint) -> None:
+    if not isinstance(adjoint, ForwardMode):
+        raise CalibrationError(f"adjoint: the fit's Jacobian is taken in forward mode, so it must be a "
+                               f"jaxfoam.ForwardMode(tangents='map' | 'vmap', threads=...), got {adjoint!r}")
 
 
 class CalibrationProblem:
@@ -133,11 +151,14 @@ class CalibrationProblem:
       frames: (F,) indices into the data's frames that enter the residual.
       masks, weights, camera: observations at the chosen pyramid level.  cfg: its `RenderConfig`.
       pixel_level: that level.  dx: the fit's grid spacing, m.
+      jacobian_adjoint: the Jacobian's route, a `jaxfoam.ForwardMode` (default DEFAULT_JACOBIAN);
+      jacobian_threads: its concurrent column groups ("map" on the CPU backend).
     """
 
     def __init__(self, data: Silhouettes, settings: FitSettings, sim: Simulator, transform, base: Params,
                  frames: np.ndarray, level: int, masks, weights, camera: Camera, cfg: RenderConfig, target,
-                 observed=None):
+                 observed=None, adjoint=DEFAULT_JACOBIAN):
+        _check_jacobian_adjoint(adjoint)
         self.data, self.settings, self.sim, self.scene = data, settings, sim, sim.scene
         self.transform, self.base, self.frames = transform, base, frames
         self.observed = np.arange(len(frames)) if observed is None else np.asarray(observed)
@@ -150,9 +171,8 @@ class CalibrationProblem:
         dt = sim.dtype
         self._times = jnp.asarray(sim.frame_times, dt)
         self._base = base.astype(dt)
-        # The fit's Jacobian: forward mode, one jvp rollout per parameter in the tuning's threads.
-        self.jacobian_adjoint = DEFAULT_JACOBIAN
-        self.jacobian_threads = DEFAULT_JACOBIAN.resolve_threads(sim.model.tuning)
+        self.jacobian_adjoint = adjoint
+        self.jacobian_threads = adjoint.resolve_threads(sim.model.tuning)
         self._columns_compiled = False
 
     def _args(self):
@@ -163,10 +183,13 @@ class CalibrationProblem:
         return _residual_jit(jnp.asarray(z, self.sim.dtype), *self._args(), self.target)
 
     def residual_and_jacobian(self, z):
-        """(r (n,), dr/dz (n, p)) by forward mode (one jvp rollout per fitted parameter), the columns in
-        `jacobian_threads` concurrent groups (`jaxfoam.adjoint.threaded_columns`)."""
+        """(r (n,), dr/dz (n, p)) by forward mode as `jacobian_adjoint` says: "map", one jvp rollout per
+        fitted parameter with the columns in `jacobian_threads` concurrent groups
+        (`jaxfoam.adjoint.threaded_columns`); "vmap", all tangents through one rollout."""
         z = jnp.asarray(z, self.sim.dtype)
         p = z.shape[0]
+        if self.jacobian_adjoint.tangents == "vmap":
+            return _residual_and_jacfwd(z, *self._args(), self.target)
         if min(int(self.jacobian_threads), p) <= 1:
             return _residual_and_jacobian(z, *self._args(), self.target)
         run = lambda basis: _residual_and_columns(z, jnp.asarray(basis), *self._args(), self.target)
@@ -252,17 +275,19 @@ def check_fit_data(data: Silhouettes, scene: Scene, used) -> None:
 
 def build_problem(data: Silhouettes, settings: FitSettings | None = None, *,
                   max_particles: int = DEFAULT_MAX_PARTICLES,
-                  max_substeps: int = DEFAULT_MAX_SUBSTEPS) -> CalibrationProblem:
+                  max_substeps: int = DEFAULT_MAX_SUBSTEPS, adjoint=DEFAULT_JACOBIAN) -> CalibrationProblem:
     """Bind a dataset to a simulator at the fit's dx, a renderer and a parameter transform.
 
     Args:
       data: the observations (`jaxfoam.io.read_silhouettes`).
       settings: `FitSettings` (default: all defaults).
       max_particles, max_substeps: budgets of one rollout (BudgetError, checked before it is bound).
+      adjoint: the Jacobian's route, a `jaxfoam.ForwardMode` (CalibrationError otherwise, before any work).
     Returns a `CalibrationProblem`. Raises CalibrationError for unusable settings or data (no frame
     after the start of the simulation, an empty first mask, masks without foam or a boundary).
     """
     settings = (settings or FitSettings()).validate()
+    _check_jacobian_adjoint(adjoint)
     dtype = jnp.float64 if settings.dtype == "float64" else jnp.float32
     scene: Scene = data.load_scene(dtype=dtype)
     d = scene.dim
@@ -338,7 +363,7 @@ def build_problem(data: Silhouettes, settings: FitSettings | None = None, *,
     cfg = make_render_config(camera, masks.shape[1:], dx, ppc, d)
     target = make_target(masks, weights, camera, dtype=dtype)
     return CalibrationProblem(data, settings, sim, transform, base, used, level, masks, weights, camera, cfg, target,
-                              observed)
+                              observed, adjoint)
 
 
 def without_plate_pixels(data: Silhouettes, scene) -> Silhouettes:
