@@ -383,11 +383,16 @@ def _check_geometry(spec, dmin, dmax, floor_y, plates, plate_field):
     if box is not None:
         lo, hi = box
         for a in range(d):
+            if hi[a] <= dmin[a] + tol or lo[a] >= dmax[a] - tol:
+                _err("initial_shape", f"{shape['type']} spans {axes[a]} in [{lo[a]:g}, {hi[a]:g}] m, entirely "
+                     f"outside the domain's [{dmin[a]:g}, {dmax[a]:g}] m")
             if lo[a] < dmin[a] - tol or hi[a] > dmax[a] + tol:
-                _err("initial_shape", f"{shape['type']} spans {axes[a]} in [{lo[a]:g}, {hi[a]:g}] m, outside the "
-                     f"domain's [{dmin[a]:g}, {dmax[a]:g}] m; the shape must lie inside the domain")
-        if floor_y is not None and lo[1] < floor_y - tol:
-            _err("initial_shape", f"{shape['type']} reaches down to y = {lo[1]:g} m, below the floor "
+                warnings.warn(f"scene field 'initial_shape': {shape['type']} spans {axes[a]} in [{lo[a]:g}, "
+                              f"{hi[a]:g}] m, beyond the domain's [{dmin[a]:g}, {dmax[a]:g}] m: the part outside "
+                              f"is not simulated", PlausibilityWarning, stacklevel=3)
+        # Material the domain keeps below the floor would start inside it.
+        if floor_y is not None and max(lo[1], dmin[1]) < floor_y - tol:
+            _err("initial_shape", f"{shape['type']} reaches down to y = {max(lo[1], dmin[1]):g} m, below the floor "
                  f"(floor.y = {floor_y:g} m): material must start on or above the floor")
     for i, plate in enumerate(plates):
         field = "plate" if plate_field == "plate" else f"plates[{i}]"

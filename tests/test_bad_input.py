@@ -48,10 +48,11 @@ BAD_SCENES = {
                                          ["'plate'", "outside the domain", "center"]),
     "extra plate of a drop outside": (_edit(DROP_SPEC, ["plates"], [{"center": [3.0, 0.1], "half_size": [0.05, 0.01]}]),
                                       ["'plates[0]'", "outside the domain"]),
-    "box half outside the domain": (_edit(HANGING_SPEC, ["initial_shape", "max"], [0.3, 0.3037]),
-                                    ["'initial_shape'", "x in [-0.05, 0.3]", "outside the domain"]),
-    "ellipse outside the domain": (_edit(DROP_SPEC, ["initial_shape", "center"], [-0.14, 0.15]),
-                                   ["'initial_shape'", "outside the domain"]),
+    "box entirely outside the domain": (_edit(HANGING_SPEC, ["initial_shape", "max"], [0.3, 0.3037]) | {
+        "initial_shape": {"type": "box", "min": [0.2, 0.22], "max": [0.3, 0.3]}},
+        ["'initial_shape'", "x in [0.2, 0.3]", "entirely outside the domain's [-0.15, 0.15]"]),
+    "ellipse entirely outside the domain": (_edit(DROP_SPEC, ["initial_shape", "center"], [-0.04, 0.5]),
+                                            ["'initial_shape'", "entirely outside the domain"]),
     "material inside the floor": (_edit(_edit(DROP_SPEC, ["floor", "y"], 0.13), ["plates"], []),
                                   ["'initial_shape'", "below the floor", "floor.y = 0.13"]),
     "floor above the domain": (_edit(DROP_SPEC, ["floor", "y"], 0.5), ["'floor.y'", "[0, 0.25)", "0.5"]),
@@ -135,6 +136,10 @@ def files(tmp_path_factory):
     with open(f["data_corrupt"], "r+b") as fh:
         fh.seek(info.byte_offset)
         fh.write(b"\xff" * info.size)
+    f["null_fit"] = d / "null_fit.json"
+    f["null_fit"].write_text(json.dumps({"params": {"sigma_y": float("nan"), "mu": 100.0}}))
+    f["latin1_fit"] = d / "latin1_fit.json"
+    f["latin1_fit"].write_bytes('{"params": {"sigma_y": 30.0}, "note": "caf\u00e9"}'.encode("latin-1"))
     f["video_empty"] = d / "empty.mp4"
     f["video_empty"].write_bytes(b"")
     f["video_text"] = d / "text.mp4"
@@ -304,6 +309,9 @@ CLI_CASES = {
                                ["camera.pixel_size = 10 m", "pixels", "not mm or um"]),
     "fit corrupted masks chunk": (["fit", "{data_corrupt}", "--out", "{dir}/fit.json"],
                                   ["data_corrupt.h5", "'masks'", "damaged"]),
+    "fit --start a result with NaN parameters": (FIT + ["--start", "{null_fit}"],
+                                                  ["--start", "null_fit.json", "non-finite"]),
+    "fit --start a non-UTF-8 result": (FIT + ["--start", "{latin1_fit}"], ["--start", "latin1_fit.json", "not a fit result"]),
     "fit --resume a text log": (FIT + ["--resume", "--log", "{text}"], ["notes.h5", "fit log", "--resume"]),
     "fit --resume a truncated log": (FIT + ["--resume", "--log", "{traj_cut}"], ["traj_cut.h5", "fit log"]),
 }
@@ -376,6 +384,12 @@ def test_api_plate_that_never_touches_the_material_warns():
     spec = _edit(HANGING_SPEC, ["plate", "center"], [0.0, 0.06])
     spec["plate"]["motion"] = {"type": "none"}
     with pytest.warns(jaxfoam._scene.PlausibilityWarning, match="'plate': the plate never touches"):
+        jaxfoam.load_scene(spec)
+
+
+def test_api_shape_half_outside_the_domain_warns_that_it_is_clipped():
+    spec = _edit(HANGING_SPEC, ["initial_shape", "max"], [0.3, 0.3037])
+    with pytest.warns(jaxfoam._scene.PlausibilityWarning, match=r"x in \[-0.05, 0.3\] m, beyond the domain's"):
         jaxfoam.load_scene(spec)
 
 

@@ -191,3 +191,19 @@ def test_sigterm_while_the_first_evaluation_compiles_exits_143_and_resumes(data,
     assert res.returncode == 0, res.stderr
     fit = json.loads(out.read_text())
     np.testing.assert_allclose(fit["loss_history"], ref["loss_history"], rtol=1e-10, atol=0)
+
+
+def test_fit_without_matplotlib_skips_its_pictures_and_succeeds(data, tmp_path, capsys, monkeypatch):
+    """The optional dependency is checked before any work: a notice, then the fit runs to its result."""
+    import jaxfoam.calibrate as cal
+    from jaxfoam.cli import main
+
+    d, path, ref, _ = data
+    monkeypatch.setattr(cal, "missing_modules", lambda *mods: [m for m in mods if m == "matplotlib"])
+    out = tmp_path / "fit.json"
+    args = [a for a in FIT_ARGS if a != "--no-plots"] + ["--max-iter", "1"]
+    assert main(["fit", str(path), "--out", str(out)] + args) == 0
+    printed = capsys.readouterr().out
+    assert printed.index("matplotlib is not installed, so the pictures are skipped") < printed.index("\nfit: ")
+    assert json.loads(out.read_text())["iterations"] == 1
+    assert not list(tmp_path.glob("*.png"))

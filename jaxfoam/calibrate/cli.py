@@ -98,12 +98,14 @@ def parse_start(text: str | None, fixed: Mapping | None = None) -> dict | None:
     path = Path(text)
     if "=" not in text and path.suffix == ".json":
         try:
-            params = json.loads(path.read_text())["params"]
+            params = json.loads(path.read_text(encoding="utf-8"))["params"]
+            out = {k: float(v) for k, v in params.items() if k in FIT_FIELDS and k not in (fixed or {})}
         except FileNotFoundError:
             raise CalibrationError(f"--start: no such fit result {text!r}") from None
-        except (json.JSONDecodeError, KeyError, TypeError) as exc:
+        except (ValueError, KeyError, TypeError, AttributeError, OSError) as exc:  # JSON, UTF-8, a directory
             raise CalibrationError(f"--start: {text!r} is not a fit result (a fit.json with 'params'): {exc}") from None
-        out = {k: float(v) for k, v in params.items() if k in FIT_FIELDS and k not in (fixed or {})}
+        if not all(math.isfinite(v) for v in out.values()):
+            raise CalibrationError(f"--start: {text!r} holds non-finite parameters {out}")
         if not out:
             raise CalibrationError(f"--start: {text!r} holds none of the fitted parameters {FIT_FIELDS}")
         return out
