@@ -195,11 +195,11 @@ def test_sigterm_while_the_first_evaluation_compiles_exits_143_and_resumes(data,
 
 def test_fit_without_matplotlib_skips_its_pictures_and_succeeds(data, tmp_path, capsys, monkeypatch):
     """The optional dependency is checked before any work: a notice, then the fit runs to its result."""
-    import jaxfoam.calibrate as cal
+    import jaxfoam.calibrate as cal  # the fit command checks its optional dependencies in cal.cli
     from jaxfoam.cli import main
 
     d, path, ref, _ = data
-    monkeypatch.setattr(cal, "missing_modules", lambda *mods: [m for m in mods if m == "matplotlib"])
+    monkeypatch.setattr(cal.cli, "missing_modules", lambda *mods: [m for m in mods if m == "matplotlib"])
     out = tmp_path / "fit.json"
     args = [a for a in FIT_ARGS if a != "--no-plots"] + ["--max-iter", "1"]
     assert main(["fit", str(path), "--out", str(out)] + args) == 0
