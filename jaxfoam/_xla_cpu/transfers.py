@@ -28,8 +28,7 @@ def _window_payload(grid: Grid, fx, w, mvA, A, mass=None, tangent=None):
 
     It is computed directly in that window order, (offset of the other axes, particle, last-axis node,
     channel), from (N,) and (N, 3) factors: built per offset as (K, N) arrays and transposed to it, the
-    payload kernel was a strided copy, and the whole scatter ran 1.23x (with mass) / 1.24x (without)
-    slower (2D, 5440 particles, float64).
+    payload kernel is a strided copy (docs/gradients.md has the measurement).
 
     tangent: optional (dx (N, d) m, dmvA, dA, dmass): then the payload's directional derivative along
     them is returned instead (`_p2g_impl`'s forward-mode rule), with r_ip = x_i - x_p and
@@ -300,13 +299,12 @@ def _g2p_transfer_bwd(grid, tuning, res, ct):
         return tuple(Dx[a] + dW[a] * s for a in range(d)), v + W[:, None] * g
 
     z = jnp.zeros_like(x[:, 0])
-    # grid_v, a residual, is gathered as it is: materialized by a cond first, reverse mode ran 0.97x.
+    # grid_v, a residual, is gathered as it is: a cond-materialized copy first was slower.
     Dx, v = _window_sum(grid_v, x, idx0, grid, ((z,) * d, jnp.zeros_like(x)), body, t, tuning, derivs=True)
     # d(x_i - x_p)/dx_p = -1 in C's offsets: sum_i cC_ia (scale sum_k W_k g_k,i) = sum_i cCs_ia v_i.
     dx = jnp.stack([Dx[a] - sum(cCs[i][a] * v[:, i] for i in range(d)) for a in range(d)], axis=1)
     # The stencil's fractions and weights as buffers: fused in, XLA:CPU recomputed them from the
-    # positions in each stencil block's payload kernel (9 in 3D): 3D reverse mode 1.080x (hanging
-    # plate, dx 8 mm, 7 rounds), 2D 1.02x. (The same in the forward p2g: 0.93-0.97x.)
+    # positions in each stencil block's payload kernel (9 in 3D); in the forward p2g buffers lost.
     _, fx, w = _stencil(x, grid)
     fx, w = tuning.buffer("adjoint_inputs", (fx, w), t)
     A = jnp.stack([jnp.stack(row, axis=1) for row in cCs], axis=1)
