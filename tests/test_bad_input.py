@@ -5,10 +5,7 @@ words that name the option or field (and its value or range); each API case asse
 subclass whose message names the field. Every case is refused before any simulation, so the suite
 compiles nothing.
 """
-import copy
 import json
-import math
-import os
 import shutil
 from pathlib import Path
 
@@ -20,6 +17,8 @@ import jaxfoam
 from jaxfoam import cli
 from jaxfoam.io import camera_covering, read_silhouettes, write_silhouettes
 
+from helpers import edited
+
 ROOT = Path(__file__).resolve().parents[1]
 HANGING = ROOT / "experiments" / "scenes" / "hanging_plate_2d.json"
 DROP = ROOT / "experiments" / "scenes" / "drop_2d.json"
@@ -27,16 +26,7 @@ HANGING_SPEC = json.loads(HANGING.read_text())
 DROP_SPEC = json.loads(DROP.read_text())
 
 
-def _edit(spec, path, value=None, delete=False):
-    spec = copy.deepcopy(spec)
-    node = spec
-    for key in path[:-1]:
-        node = node[key]
-    if delete:
-        del node[path[-1]]
-    else:
-        node[path[-1]] = value
-    return spec
+_edit = edited
 
 
 BAD_SCENES = {

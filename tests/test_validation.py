@@ -3,7 +3,6 @@
 Three doors: `Params.validate` (and everything that takes Params), `load_scene` (scene description of
 shared/specs/silhouettes.md: SceneError, a ValueError), and `simulate` / `Simulator` arguments.
 """
-import copy
 import json
 import math
 
@@ -11,6 +10,8 @@ import numpy as np
 import pytest
 
 from jaxfoam import Params, SceneError, Simulator, load_scene, simulate
+
+from helpers import edited
 
 GOOD = dict(mu=300.0, kappa=2000.0, sigma_y=20.0, eta=5.0, m=0.5, rho=80.0)  # Pa, Pa, Pa, Pa s^m, -, kg/m^3
 
@@ -83,15 +84,7 @@ def test_params_are_checked_under_grad_and_pass_through_jit():
 
 def _edit(path, value, delete=False):
     """A copy of SCENE with the entry at `path` (keys/indices) set to value, or deleted."""
-    spec = copy.deepcopy(SCENE)
-    node = spec
-    for key in path[:-1]:
-        node = node[key]
-    if delete:
-        del node[path[-1]]
-    else:
-        node[path[-1]] = value
-    return spec
+    return edited(SCENE, path, value, delete)
 
 
 SAMPLES = {"type": "samples", "times": [0.0, 0.2, 0.2], "positions": [[0.0, 0.3], [0.01, 0.3], [0.0, 0.3]]}
