@@ -1,8 +1,8 @@
 """Fit convergence: how the fitted parameters move with the fit's grid and particles per cell.
 
 One synthetic dataset per scene is made once on a fine grid (the recovery study's data path:
-`jaxfoam.synth.synthesize` with its truth set 0, boundary noise and dropped frames), then fitted by
-`jaxfoam.calibrate.calibrate` (Levenberg-Marquardt, the fitter's bounds, discretization check and
+`fitting.synthesize` with its truth set 0, boundary noise and dropped frames), then fitted by
+`fitting.calibrate` (Levenberg-Marquardt, the fitter's bounds, discretization check and
 intervals) at several fit resolutions: 32, 48 and 64 cells across the domain's largest extent with 4
 particles per cell, and 64 cells with 9. Every fit starts at the truth (one start; a start range of
 +-0.1% around it), so what changes between fits is where each grid's optimum lies, not which basin
@@ -33,9 +33,9 @@ import numpy as np
 import jaxfoam  # noqa: F401  (float64)
 from experiments import _common as C
 from experiments.recovery import DROP_FRAMES, NOISE, SCENES, truth_sets
-from jaxfoam.calibrate import FIT_FIELDS, FitSettings, calibrate
-from jaxfoam.io import read_silhouettes
-from jaxfoam.synth import synthesize
+from fitting import FIT_FIELDS, FitSettings, calibrate
+from fitting import read_silhouettes
+from fitting import synthesize
 
 NAME = "fit_convergence"
 WORK = Path(__file__).resolve().parent.parent / "out" / NAME

@@ -1,9 +1,9 @@
 """Fit features: do particle resampling and fracture change the fitted parameters?
 
 For each 2D fit scene (hanging plate, drop, squeeze) one synthetic dataset is made once on a grid finer
-than the fit's (`jaxfoam.synth.synthesize`, plain MPM, the recovery study's truth set 0, boundary noise
+than the fit's (`fitting.synthesize`, plain MPM, the recovery study's truth set 0, boundary noise
 and dropped frames; the same data files as experiments/fit_convergence.py), then fitted four ways by
-`jaxfoam.calibrate.calibrate`: plain, with resampling only (`FitSettings.resample`, the default
+`fitting.calibrate`: plain, with resampling only (`FitSettings.resample`, the default
 `ResampleConfig`: a pass every 20 substeps, target ppc = the fit's), with fracture only
 (`FitSettings.fracture`, the default `FractureConfig`) and with both. Everything else is the fitter's
 default (4 particles per cell, CFL 0.3, float64, Levenberg-Marquardt, discretization check, 95% intervals)
@@ -37,9 +37,10 @@ import jaxfoam  # noqa: F401  (float64)
 from experiments import _common as C
 from experiments.fit_convergence import START_HALF_WIDTH, TRUTH_SET, make_data, start_ranges
 from experiments.recovery import DROP_FRAMES, NOISE, truth_sets
-from jaxfoam.calibrate import FIT_CELLS, FIT_FIELDS, FIT_PPC, FitSettings, calibrate
+from fitting import FIT_FIELDS, FitSettings, calibrate
+from fitting.settings import FIT_CELLS, FIT_PPC
 from jaxfoam.fracture import FractureConfig
-from jaxfoam.io import read_silhouettes
+from fitting import read_silhouettes
 from jaxfoam.resample import ResampleConfig
 
 NAME = "fit_features"

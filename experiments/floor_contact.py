@@ -8,7 +8,7 @@ what differs between the two grids once the foam has landed:
   grid's node rows, and with a node row on the floor the foam rests a fixed fraction of a cell above it;
 - the height of the top, the width and the centroid height of the foam at the end (0.4 s);
 - the mean distance between the silhouette at each frame and the finest run's (2.5 mm), mm: the
-  fitter's goodness-of-fit measure (`jaxfoam.calibrate.silhouette_mismatch`: area of the symmetric
+  fitter's goodness-of-fit measure (`fitting.silhouette_mismatch`: area of the symmetric
   difference over the finest run's perimeter) on rasters of disks of 0.75 particle spacings;
 - the same with a frictionless floor (friction 0), to separate the floor's friction from the rest;
 - the same floor with particle contact (`"floor": {"contact": "particle"}`: the floor holds a particle
@@ -30,7 +30,7 @@ import numpy as np
 import jaxfoam
 from experiments import _common as C
 from experiments.recovery import SCENES, truth_sets
-from jaxfoam.calibrate import silhouette_mismatch
+from fitting import silhouette_mismatch
 
 SCENE = "drop_2d"
 DURATION = 0.4  # s, the recovery study's drop duration

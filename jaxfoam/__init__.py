@@ -17,9 +17,9 @@ from ._jacobian import (ObservableJacobian as ObservableJacobian, make_observabl
 from ._model import (CFL as CFL, Model as Model, ModelError as ModelError, make_model as make_model,
                      stable_dt as stable_dt, wave_speed as wave_speed)
 from ._mpm import g2p as g2p, grid_update as grid_update, p2g as p2g, step as step
-from ._params import Params as Params
+from ._params import FIT_FIELDS as FIT_FIELDS, Params as Params
 from ._rollout import observe_default as observe_default, rollout as rollout
-from ._scene import (Plate as Plate, Scene as Scene, SceneError as SceneError, init_state as init_state,
+from ._scene import (DEFAULT_PPC as DEFAULT_PPC, PlausibilityWarning as PlausibilityWarning, Plate as Plate, Scene as Scene, SceneError as SceneError, init_state as init_state,
                      load_scene as load_scene, sample_particles as sample_particles)
 from ._simulate import (SimulationError as SimulationError, Simulator as Simulator, Trajectory as Trajectory,
                         simulate as simulate)
@@ -32,8 +32,8 @@ from .adjoint import (Autodiff as Autodiff, Checkpointed as Checkpointed, Forwar
 __version__ = "0.1.0"
 
 __all__ = [
-    "Autodiff", "CFL", "Checkpointed", "ForwardMode", "Grid", "HandWritten", "JaxfoamError", "Model", "ModelError",
-    "ObservableJacobian", "Params", "Plate", "SavedTrajectory", "Scene", "SceneError", "SimulationError", "Simulator",
+    "Autodiff", "CFL", "Checkpointed", "DEFAULT_PPC", "FIT_FIELDS", "ForwardMode", "Grid", "HandWritten", "JaxfoamError", "Model", "ModelError",
+    "ObservableJacobian", "Params", "PlausibilityWarning", "Plate", "SavedTrajectory", "Scene", "SceneError", "SimulationError", "Simulator",
     "State", "Trajectory", "TrajectoryError", "adjoint", "apply_colliders", "det", "dev", "deviatoric_stress_norm",
     "energy_density", "g2p", "grid_update", "hb_rate", "hb_steady_shear_stress", "init_state", "kirchhoff_stress",
     "load_scene", "load_trajectory", "make_grid", "make_model", "make_observable_jacobian", "make_state",

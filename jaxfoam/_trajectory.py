@@ -42,7 +42,7 @@ import jax
 import numpy as np
 
 from ._errors import JaxfoamError
-from ._guards import publish, temporary_path
+from .guards import publish, temporary_path
 from ._params import Params
 
 FORMAT = "jaxfoam-trajectory"

@@ -1,4 +1,5 @@
-"""Command line: `jaxfoam simulate`, `jaxfoam render`, `jaxfoam demo`.
+"""Command line: `jaxfoam simulate`, `jaxfoam render`, `jaxfoam demo`, and the calibration package's
+`jaxfoam synth`, `jaxfoam track` and `jaxfoam fit` (parsers in `fitting.cli`, imported only when needed).
 
 Each subcommand is one `add_<name>_parser(subparsers)` function that registers its arguments and one
 `cmd_<name>(args) -> exit code` function; `main` dispatches on `args.func`. A new subcommand adds its
@@ -16,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ._errors import JaxfoamError
-from ._guards import DEFAULT_MAX_PARTICLES, DEFAULT_MAX_SUBSTEPS
+from .guards import DEFAULT_MAX_PARTICLES, DEFAULT_MAX_SUBSTEPS
 
 # Shaving-cream-like defaults (order of magnitude of Gillette foam rheometry, Durian 1990 / Ovarlez 2010):
 # shear modulus ~ 100-300 Pa, yield stress ~ 20-60 Pa, Herschel-Bulkley consistency ~ 5-30 Pa s^m with
@@ -167,8 +168,8 @@ def run_simulation(scene_path, out, *, dx=None, ppc=None, dtype="float64", frame
     import jax
     import jax.numpy as jnp
 
-    from ._guards import check_dtype_range, check_output, check_particles, check_substeps, estimate_particles
-    from ._guards import substeps_per_frame
+    from .guards import check_dtype_range, check_output, check_particles, check_substeps, estimate_particles
+    from .guards import substeps_per_frame
     from ._params import Params
     from ._model import CFL
     from ._rollout import observe_default, rollout
@@ -276,11 +277,12 @@ def _add_run_options(p, dx=None, frames=DEFAULT_FRAMES, duration=DEFAULT_DURATIO
     p.add_argument("--seed", type=int_at_least(0), default=0, help="particle sampling seed (default 0)")
     p.add_argument("--cfl", type=float_in(0.0, 1.0, lo_open=True), default=None,
                    help="CFL number of the time step, in (0, 1] (default jaxfoam.CFL)")
-    _add_budget_options(p)
+    add_budget_options(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
-def _add_budget_options(p):
+def add_budget_options(p):
+    """Add --max-particles and --max-substeps (the run's size budget) to the parser p."""
     p.add_argument("--max-particles", type=int_at_least(1), default=DEFAULT_MAX_PARTICLES,
                    help=f"refuse a run of more particles than this (default {DEFAULT_MAX_PARTICLES:,})")
     p.add_argument("--max-substeps", type=int_at_least(1), default=DEFAULT_MAX_SUBSTEPS,
@@ -324,7 +326,7 @@ def _check_suffix(path, option, allowed):
 
 
 def cmd_render(args) -> int:
-    from ._guards import check_output, require_extra
+    from .guards import check_output, require_extra
     from ._trajectory import load_trajectory
     from .render import render_contact_sheet, render_video
 
@@ -368,7 +370,7 @@ def add_demo_parser(sub):
 
 
 def cmd_demo(args) -> int:
-    from ._guards import check_output, require_extra
+    from .guards import check_output, require_extra
     from .render import render_contact_sheet, render_video
 
     require_extra("jaxfoam demo", "matplotlib", *(("imageio", "imageio_ffmpeg") if args.mp4 else ()))
@@ -394,7 +396,12 @@ def cmd_demo(args) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
+SIMULATOR_COMMANDS = ("simulate", "render", "demo")
+
+
+def build_parser(argv=None) -> argparse.ArgumentParser:
+    """The `jaxfoam` parser. The `fitting` package's subcommands are added unless argv names a simulator
+    command (so `jaxfoam simulate` never imports the calibration package)."""
     from . import __version__
 
     parser = argparse.ArgumentParser(prog="jaxfoam", description="Herschel-Bulkley foam on the Material Point "
@@ -404,9 +411,10 @@ def build_parser() -> argparse.ArgumentParser:
     add_simulate_parser(sub)
     add_render_parser(sub)
     add_demo_parser(sub)
-    from .calibrate import add_fit_parser
-    from .synth import add_synth_parser
-    from .track import add_track_parser
+    command = next((a for a in (sys.argv[1:] if argv is None else argv) if not a.startswith("-")), None)
+    if command in SIMULATOR_COMMANDS:
+        return parser
+    from fitting.cli import add_fit_parser, add_synth_parser, add_track_parser
     add_synth_parser(sub)
     add_track_parser(sub)
     add_fit_parser(sub)
@@ -444,7 +452,7 @@ def main(argv=None) -> int:
     if os.environ.get("JAXFOAM_X64", "1") != "0":
         # The command line is an application: float64 for --dtype float64 and fits (JAXFOAM_X64=0: off).
         jax.config.update("jax_enable_x64", True)
-    parser = build_parser()
+    parser = build_parser(argv)
     as_command = argv is None
     args = parser.parse_args(argv)
     prog = f"jaxfoam {args.command}"

@@ -15,9 +15,9 @@ import os
 
 import numpy as np
 
-from ._guards import VIZ_HINT, atomic_output
+from .guards import VIZ_HINT, atomic_output
 from ._trajectory import SavedTrajectory, as_saved_trajectory
-from ._video import ffmpeg_subprocess
+from .video import ffmpeg_subprocess
 
 COLOR_FIELDS = ("gamma_dot", "s")
 # Plastic rates below this fraction of the colour scale's top are drawn grey (elastic or nearly so):
