@@ -180,10 +180,8 @@ def predicted_move(problem: CalibrationProblem, other: CalibrationProblem, z, J,
     return with_fit, with_own, frame_change
 
 
-# A frame whose pixel residual changes between dx and DX_CHECK_RATIO dx by more than this times the median
-# frame's is one the fit grid resolves worse than the others. Set from the recovery study at 1 cm (frames of
-# fits that recovered mu within 10%: 0.8-1.2x; the squeeze's lift 1.6-1.9x, the hanging foam's tear-off
-# 1.5-3.7x). It only selects frames for a note; it changes no result.
+# A frame whose pixel residual changes between the two grids by more than this times the median frame's
+# is named in a note (docs/calibrate.md); it changes no result.
 UNEVEN_FRAME_RATIO = 1.5
 
 

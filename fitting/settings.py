@@ -33,72 +33,36 @@ ADAM_DECAY = 50.0
 FTOL = 1e-7
 XTOL = 1e-6
 DEFAULT_STARTS = 3
-# Goodness of fit: per used frame, the mean displacement between the fitted and the observed
-# silhouette boundaries (area of their symmetric difference over the observed perimeter, m). A silhouette
-# drawn from particles places its boundary to within about half a particle spacing, so frames whose
-# boundaries are on average more than one particle spacing apart (dx / 2 at the default ppc) are a misfit
-# the discretization does not explain: a local minimum, or an event (tear-off, contact) the grid places at
-# another time. IoU is reported too but does not decide: it penalizes thin shapes (right drop fits had
-# IoU ~0.7 once the foam was a pancake a few cells thick).
+# Goodness of fit: frames whose fitted and observed boundaries are on average more than this many
+# particle spacings apart are a misfit the discretization does not explain (docs/calibrate.md).
 FRAME_BOUNDARY_SPACINGS = 1.0
 DEFAULT_LEVEL = 0.95
 # Residual autocorrelation is integrated over lags up to this many kernel supports, per axis.
 CORRELATION_WINDOW_SUPPORTS = 1.0
-# Discretization check: the residual and Jacobian are evaluated once more on a grid this many times
-# finer, and the shift of the estimate they imply is extrapolated to the continuum assuming first-order convergence
-# (MPM silhouettes, with grid-boundary layers of about a cell, converge at best at first order in dx).
-# Finer rather than coarser: a coarse fit is rarely in the asymptotic range, and the finer grid is
-# the side the data (video, or a finer simulation) lie on; a Jacobian at dx / sqrt(2) costs about
-# 2.8x one at dx in 2D (4x in 3D).
+# Discretization check: one more residual and Jacobian on a grid this much finer, extrapolated at first
+# order (MPM silhouettes converge at best at first order in dx); the finer side is the data's side.
 DX_CHECK_RATIO = 1.0 / math.sqrt(2.0)
 DX_CHECK_ORDER = 1.0
-# Which Jacobian the check's estimate of the move between the grids uses: "both" since 2026-11-24, the
-# larger of the estimates with the fit grid's Jacobian and with each grid's own (`discretization_error`),
-# at the price of one Jacobian on the finer grid (about 2.8x one at dx in 2D) instead of one rollout.
-# Until then only the fit grid's ("fit"). Neither is reliable alone, measured against fits continued
-# from the optimum on both grids (experiments/results/recovery.md, "Discretization check against
-# refits"; moves in the fitted coordinates, quoted as the relative changes they make): on the default-grid
-# squeeze set 1 sigma_y moved +46% in four LM iterations at 3.3 mm, the fit grid's Jacobian predicted +13%
-# and the own Jacobians +6%; on the 12 main-table fits (24 moves of mu and sigma_y) the fit grid's
-# prediction was the closer one in 15 and the own Jacobians' in 9, and the larger of the two, as the
-# check's error, covered 23; on the slump of tests/test_calibrate.py a converged refit moved sigma_y
-# +6.3%, predicted +7.2% (fit grid) and +5.1% (own).
+# The check's predicted move uses the larger of the fit grid's and each grid's own Jacobian: neither
+# alone covered the refits of the recovery study (docs/calibrate.md, "The discretization check").
 DX_CHECK_JACOBIAN = "both"
-# The check's measured move (FitSettings.dx_refit): LM iterations on the finer grid from the optimum, per
-# dimension. The first-order estimates above miss where the residual is not linear over the move: in the
-# recovery study's drop set 0 at 1 cm, 4 such iterations moved mu -18% where the estimates said -1.4% and
-# +1.1% (the one refinement move of 24 the check's error missed), and the fit had reported mu identifiable,
-# 20% off, the truth outside its interval. The iterations stop earlier when LM converges (FTOL, XTOL). The
-# study re-reported every record with 2 and with 4 (experiments/results/recovery.md, "Discretization check
-# with a measured move"). 2D: 4, because 2 (the default until 2026-11-25, later) left moves still growing:
-# the default grid's drop set 1 then reported mu identifiable, 16% off (4: not identifiable, the truth
-# inside); 4 took 17-118 s there (2: 9-62 s), the slowest fit (squeeze set 1) 12.1 -> 14.1 min. 3D: 2, because
-# each iteration's Jacobian at dx / sqrt(2) costs about 4x one at dx (2.8x in 2D): 4 took 166-442 s on the
-# study's 3D fits (2: 68-147 s), up to 1.8x the fit itself, and changed none of their intervals by more
-# than 12%.
+# LM iterations of the check's measured move on the finer grid, per dimension: 4 in 2D (fewer left moves
+# still growing), 2 in 3D (each costs about 4x a fit-grid Jacobian); docs/calibrate.md.
 DEFAULT_DX_REFIT = {2: 4, 3: 2}
-# Safety factor on the extrapolated numerical error: Roache's grid convergence index takes 3 for a
-# two-grid estimate whose order is assumed, 1.25 only when three or more grids measure the order. The
-# check uses two grids and an assumed order, so 3. (Until 2026-11-23 this was 1.25: in the recovery
-# study the truth then lay outside 6 of 48 reported intervals, among them a hanging-plate mu whose
-# actual error, 34 Pa, equalled its estimated numerical error; experiments/results/recovery.md.)
+# Safety factor on the extrapolated numerical error: Roache's grid convergence index for a two-grid
+# estimate with an assumed order.
 GCI_SAFETY = 3.0
 # A parameter whose reported interval covers at least this fraction of its bounds is not identifiable:
 # the data then say no more than the bounds do (e.g. m in [0.25, 1.5] with bounds [0.2, 1.5]).
 BOUND_SPAN_FRACTION = 0.9
-# The fit's default discretization and precision, from the measurements in experiments/MODEL_CHOICE.md
-# (its `defaults` block states the same values; tests/test_model_choice.py keeps the two equal).
-# Cells across the largest extent: 2D 64, the best grid measured on the drop; 3D 32, the affordable one (section 1).
-FIT_CELLS = {2: 64, 3: 32}
-# Particles per cell: 1 is 2-10x less accurate; 9 costs 2.25x the particles and helps one scene of three (section 1).
+# The fit's default discretization and precision: the measurements of experiments/MODEL_CHOICE.md (its
+# `defaults` block states the same values; tests/fitting/test_model_choice.py keeps the two equal).
+FIT_CELLS = {2: 64, 3: 32}  # cells across the largest extent: 2D the best grid measured, 3D the affordable one
 FIT_PPC = {2: 4, 3: 8}
-# CFL number: 3.3x margin to instability; larger CFL worsens the current hanging plate and channel flow (section 2).
 FIT_CFL = 0.3
-# Precision: float32 fits reach float64's optima but run only 1.0-1.5x as fast (recovery study; section 2).
-FIT_DTYPE = "float64"
-# Particle resampling and fracture in the fit's rollouts: off (None). Section 4: on the three 2D fit scenes
-# (32 cells) fracture changed no fit, resampling moved the parameters within the plain fit's 95% interval
-# at 2.2-3.1x the fit's wall time (experiments/results/fit_features.md).
+FIT_DTYPE = "float64"  # float32 reaches the same optima but is not faster enough to be the default
+# Particle resampling and fracture in the fit's rollouts: off; on the 2D fit scenes neither moved a fit
+# outside the plain fit's interval (experiments/results/fit_features.md).
 FIT_RESAMPLE = None
 FIT_FRACTURE = None
 # Every frame of a rollout runs the same number of substeps, sized for its widest frame interval, so a
@@ -116,10 +80,6 @@ MIN_DOMAIN_PIXELS = 8
 
 class CalibrationError(JaxfoamError, ValueError):
     """Bad calibration input (settings, data); the message names the field."""
-
-
-
-
 
 
 @dataclasses.dataclass(frozen=True)
