@@ -260,11 +260,8 @@ def _return_map_with_rate(bbar_e, f, params, dt, tuning: Tuning | None = None):
 def _inv_cbrt(x):
     """x^(-1/3) for x > 0 (NaN for x < 0 and inf at 0, as the power), as exp(-ln(x) / 3).
 
-    XLA:CPU lowers a power with a float exponent to a general pow that costs 11 ns per element in
-    float32 (18 in float64) against 1.9 (6.2) for this exp and log: the two cube roots of the return
-    map were about 9% of a 2D float32 substep's CPU time. (A float32 estimate refined in float64 was
-    faster only while it ignored that extreme strains give determinants outside float32's range; with
-    the exponent split off to stay in range it was slower than this.)"""
+    XLA:CPU lowers a float power to a general pow, several times slower than this exp and log
+    (docs/performance.md)."""
     return jnp.exp(jnp.log(x) * (-1.0 / 3.0))
 
 
