@@ -20,7 +20,7 @@ from ._params import Params
 SQRT_2_3 = math.sqrt(2.0 / 3.0)
 # Iterations of the return map's scalar solve in log-rate space (Halley steps: Newton's step with its
 # second-order correction, cubic convergence); 3 reach float64 round-off for m in [0.1, 3] and eta in
-# [0, 1e4], 4 also for m in [0.01, 5] (tests/test_return_map.py measures it; plain Newton from the
+# [0, 1e4], 4 also for m in [0.01, 5] (tests/jaxfoam/test_return_map.py measures it; plain Newton from the
 # upper bracket needed 5 and 7, at 3 transcendentals per iteration instead of 2).
 RETURN_MAP_NEWTON_ITERS = 4
 # In float32 one step fewer: over m in [0.1, 3], eta in [0, 1e4], a in [1e-6, 1e3], b in [1e-6, 1e4]
