@@ -56,9 +56,8 @@ PARAMS = dict(mu=200.0, sigma_y=20.0, eta=5.0, m=0.5)
 FRAME_DT = 0.005  # s between frames (a 200 fps camera)
 # Goals of the gradient issue: reverse <= 4x forward time, jacfwd(4) <= 6x, gradient memory <= 3x.
 GOALS = {"reverse": (4.0, 3.0), "jacfwd": (6.0, None)}
-# runs: timing processes per grid spacing. One process's ratios moved by up to 10% between runs of
-# the same code on the shared machine (reverse at dx 2.5 mm: 3.87x, 4.23x, 4.04x wall on 2026-11-24),
-# so the verdict takes the median over runs, and the table lists each run's ratio.
+# runs: timing processes per grid spacing. One process's ratios move by up to 10% between runs of the
+# same code on the shared machine, so the verdict takes the median over runs and lists each run's ratio.
 FULL = dict(dxs=(0.005, 0.0025), frames=10, repeats=5, runs=3)
 QUICK = dict(dxs=(0.01,), frames=3, repeats=2, runs=1)
 # --3d: the 3D hanging plate at one grid (6,798 particles at dx 1 cm), fewer frames: its jacfwd call takes

@@ -5,7 +5,7 @@ the camera axis, with free front and back faces. This study extrudes the cross-s
 (`scenes/drop_2d.json`, `scenes/hanging_plate_2d.json`, the current 2 cm grip) along z and simulates:
 
 - "slab": the cross-section filling a domain only SLAB_CELLS cells deep, whose front and back walls are
-  slip walls: plane strain, discretized in 3D (model.md, "Plane strain (2D)"; tests/test_plane_strain.py);
+  slip walls: plane strain, discretized in 3D (model.md, "Plane strain (2D)"; tests/jaxfoam/test_plane_strain.py);
 - "block D/W = r": a block of depth D = r W (W the foam's width along x) centred in a domain with MARGIN of
   free space in front and behind, so its front and back faces are free (the hanging plate's board covers the
   block's depth plus the margin);

@@ -3,12 +3,10 @@
 Every compiled XLA:CPU program keeps its machine code in memory mappings, and JAX keeps each compiled
 program in its caches for the life of the process (`jaxfoam.rollout` and the calibration's jitted
 residual and Jacobian are compiled once per grid, scene and fit setting, and reused). A fit problem
-at a new grid spacing added about 720 mappings (2D drop, dx 1 cm: 680 -> 1,448 -> 2,166 -> 2,884 for
-three problems; `jax.clear_caches()` brought it back to 710). Linux caps a process at
-vm.max_map_count mappings (65,530 by default): the recovery study's driver, after about 36 fits with
-their discretization checks in one process, died with "LLVM compilation error: Cannot allocate
-memory" and a segmentation fault. A notebook or script that fits many datasets or grids in one
-process would meet the same end.
+at a new grid spacing adds about 720 mappings (2D drop, dx 1 cm; `jax.clear_caches()` frees them).
+Linux caps a process at vm.max_map_count mappings (65,530 by default), so a script or notebook that
+binds a few dozen fit problems in one process would die with "LLVM compilation error: Cannot
+allocate memory".
 
 `release_if_near_map_limit` is called before a new `Simulator` is bound (so before every fit
 problem): when the process holds more than MAP_FRACTION of the limit it clears JAX's caches, which

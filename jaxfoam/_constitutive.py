@@ -20,7 +20,7 @@ from ._params import Params
 SQRT_2_3 = math.sqrt(2.0 / 3.0)
 # Iterations of the return map's scalar solve in log-rate space (Halley steps: Newton's step with its
 # second-order correction, cubic convergence); 3 reach float64 round-off for m in [0.1, 3] and eta in
-# [0, 1e4], 4 also for m in [0.01, 5] (tests/test_return_map.py measures it; plain Newton from the
+# [0, 1e4], 4 also for m in [0.01, 5] (tests/jaxfoam/test_return_map.py measures it; plain Newton from the
 # upper bracket needed 5 and 7, at 3 transcendentals per iteration instead of 2).
 RETURN_MAP_NEWTON_ITERS = 4
 # In float32 one step fewer: over m in [0.1, 3], eta in [0, 1e4], a in [1e-6, 1e3], b in [1e-6, 1e4]
@@ -260,11 +260,8 @@ def _return_map_with_rate(bbar_e, f, params, dt, tuning: Tuning | None = None):
 def _inv_cbrt(x):
     """x^(-1/3) for x > 0 (NaN for x < 0 and inf at 0, as the power), as exp(-ln(x) / 3).
 
-    XLA:CPU lowers a power with a float exponent to a general pow that costs 11 ns per element in
-    float32 (18 in float64) against 1.9 (6.2) for this exp and log: the two cube roots of the return
-    map were about 9% of a 2D float32 substep's CPU time. (A float32 estimate refined in float64 was
-    faster only while it ignored that extreme strains give determinants outside float32's range; with
-    the exponent split off to stay in range it was slower than this.)"""
+    XLA:CPU lowers a float power to a general pow, several times slower than this exp and log
+    (docs/performance.md)."""
     return jnp.exp(jnp.log(x) * (-1.0 / 3.0))
 
 

@@ -55,7 +55,7 @@ def _stencil(x, grid: Grid):
     w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
     # Every stencil index is kept inside the grid (a no-op for active particles, which `constitutive`
     # keeps in the stencil-safe region; it bounds inactive or non-finite ones), so the gather and the
-    # scatter need no bounds checks (XLA:CPU's checked gather is 2x slower).
+    # scatter need no bounds checks (XLA:CPU's checked gather is slower; docs/performance.md).
     hi = jnp.asarray(grid.shape, jnp.int32) - 3
     return jnp.clip(base.astype(jnp.int32), 0, hi[None, :]), fx, w
 

@@ -252,11 +252,8 @@ def release(state: State, weak, volume=None) -> State:
     all): points that stay weak for many substeps, as in a neck thinner than h_c. Capping J at 1 every
     substep is a ratchet there: J follows the noise of the flow's divergence, its rises are cut off and
     its falls kept, so J drifts down and the compressive pressure it builds sprays the released neck
-    apart (measured on the pulled viscous strip of experiments/fracture_demo.py with resampling: with
-    J capped only, the released neck was blown sideways up to 20 mm from the axis of the 10 mm strip
-    at dx 0.625 mm, every particle slot in use 4 mm of travel after the break, and at dx 1.25 mm the
-    run ended with 1040 points instead of 701 for plain MPM; with F = I the released points stayed
-    within the strip's 5 mm half-width, 749 points at the end at dx 1.25 mm).
+    apart (on the pulled strip of experiments/fracture_demo.py, up to 20 mm sideways from a 10 mm
+    strip with J capped; within its half-width with F = I).
     """
     d = state.dim
     J = det(state.F)

@@ -44,9 +44,8 @@ from .sdf import material_sdf
 # Smallest B-spline-weighted count of old points around a candidate (points in its 3^d stencil,
 # weighted): below it a new point would take almost no mass; 0.05 is 1/80 of a full 2D cell.
 MIN_SUPPORT = 0.05
-# SDF lattice points per dx by dimension: dx/2 resolves gaps of one cell in 2D; in 3D a lattice of
-# dx/2 has 8x the points and made a resampling pass 20x slower (measured: 22 s vs 1.1 s CPU on the pie
-# scene), so 3D uses the grid spacing.
+# SDF lattice points per dx by dimension: dx/2 resolves gaps of one cell in 2D; in 3D it has 8x the
+# points and makes a resampling pass about 20x slower (docs/performance.md), so 3D uses dx.
 DEFAULT_SDF_REFINE = {2: 2, 3: 1}
 
 

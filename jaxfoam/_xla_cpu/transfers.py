@@ -193,8 +193,7 @@ def _p2g_transfer(grid, tuning, x, idx0, mvA, A, mass, t):
     """`_p2g_impl` with a hand-written reverse-mode derivative in x, mvA, A and mass: the grid
     cotangent is gathered once per stencil window and contracted per particle. (The two outputs
     are joined into one (G, d + 1) table in the backward pass: one concatenation, where autodiff's
-    transpose of the slices padded each to the full table and added them, 52 of ~4600 us per
-    reverse-mode substep at dx 2.5 mm.) t: the substep's start time, s (`_window_sum`); its
+    transpose of the slices pads each to the full table and adds them.) t: the substep's start time, s (`_window_sum`); its
     cotangent is zero."""
     return _p2g_impl(grid, x, idx0, mvA, A, mass)
 
