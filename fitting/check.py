@@ -181,7 +181,7 @@ def predicted_move(problem: CalibrationProblem, other: CalibrationProblem, z, J,
 
 
 # A frame whose pixel residual changes between the two grids by more than this times the median frame's
-# is named in a note (docs/calibrate.md); it changes no result.
+# is named in a note (docs/calibrate.md, "The defaults and why"); it changes no result.
 UNEVEN_FRAME_RATIO = 1.5
 
 

@@ -34,7 +34,7 @@ FTOL = 1e-7
 XTOL = 1e-6
 DEFAULT_STARTS = 3
 # Goodness of fit: frames whose fitted and observed boundaries are on average more than this many
-# particle spacings apart are a misfit the discretization does not explain (docs/calibrate.md).
+# particle spacings apart are a misfit the discretization does not explain (docs/calibrate.md, "The defaults and why").
 FRAME_BOUNDARY_SPACINGS = 1.0
 DEFAULT_LEVEL = 0.95
 # Residual autocorrelation is integrated over lags up to this many kernel supports, per axis.
@@ -44,10 +44,10 @@ CORRELATION_WINDOW_SUPPORTS = 1.0
 DX_CHECK_RATIO = 1.0 / math.sqrt(2.0)
 DX_CHECK_ORDER = 1.0
 # The check's predicted move uses the larger of the fit grid's and each grid's own Jacobian: neither
-# alone covered the refits of the recovery study (docs/calibrate.md, "The discretization check").
+# alone covered the refits of the recovery study (docs/calibrate.md, "The defaults and why").
 DX_CHECK_JACOBIAN = "both"
 # LM iterations of the check's measured move on the finer grid, per dimension: 4 in 2D (fewer left moves
-# still growing), 2 in 3D (each costs about 4x a fit-grid Jacobian); docs/calibrate.md.
+# still growing), 2 in 3D (each costs about 4x a fit-grid Jacobian); docs/calibrate.md, "The defaults and why".
 DEFAULT_DX_REFIT = {2: 4, 3: 2}
 # Safety factor on the extrapolated numerical error: Roache's grid convergence index for a two-grid
 # estimate with an assumed order.
@@ -60,7 +60,7 @@ BOUND_SPAN_FRACTION = 0.9
 FIT_CELLS = {2: 64, 3: 32}  # cells across the largest extent: 2D the best grid measured, 3D the affordable one
 FIT_PPC = {2: 4, 3: 8}
 FIT_CFL = 0.3
-FIT_DTYPE = "float64"  # float32 reaches the same optima but is not faster enough to be the default
+FIT_DTYPE = "float64"  # float32 reaches float64's optima at only 1.0-1.5x its speed (docs/calibrate.md)
 # Particle resampling and fracture in the fit's rollouts: off; on the 2D fit scenes neither moved a fit
 # outside the plain fit's interval (experiments/results/fit_features.md).
 FIT_RESAMPLE = None

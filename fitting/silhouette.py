@@ -45,7 +45,7 @@ from .io import Camera, Silhouettes
 
 # Kernel width h in particle spacings: a quadratic B-spline of spacing s is a partition of unity
 # on a lattice of spacing s, so a block of particles renders D = 1 inside; 1.5 s keeps D within
-# ~10% of 1 for jittered sampling and moderate stretch (measured in tests/test_silhouette.py).
+# ~10% of 1 for jittered sampling and moderate stretch (measured in tests/fitting/test_silhouette.py).
 KERNEL_SPACINGS = 1.5
 # Kernel width h in pixels, at least: every particle then reaches >= 3 pixel centres per axis, so
 # the image is a smooth function of its position at any zoom (no particle falls between pixels).

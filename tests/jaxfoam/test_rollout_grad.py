@@ -213,10 +213,9 @@ def test_long_rollout_gradient_through_checkpoints():
     The plain-scan tape of this rollout would hold every substep's residuals; with a checkpoint per
     frame and a rematerialized checkpoint per substep inside it (saving only the named values of
     REMAT_SAVED), only the 40 frame states, one frame's 50 substep states and one substep's residuals
-    are alive at once. The compiled programs' planned buffers (temp + arguments + outputs; measured
-    on 2026-11-25: 322 MB for the plain tape, 4.9 MB checkpointed) must differ by more than 20x. The
-    peak memory on a grid where the plain tape needs gigabytes is measured by
-    experiments/bench_grad.py (dx 2.5 mm: 3.2 GB planned for the plain tape)."""
+    are alive at once. The compiled programs' planned buffers (temp + arguments + outputs; about
+    322 MB for the plain tape against 4.9 MB checkpointed) must differ by more than 20x; the memory on
+    a grid where the plain tape needs gigabytes is in docs/performance.md."""
     long_sim = _sim(40)
     assert long_sim.total_substeps == 2000
     planned, rev_fns = {}, {}
