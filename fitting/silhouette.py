@@ -503,7 +503,7 @@ def loss_terms(xs, active, target: SilhouetteTarget, cfg: RenderConfig, margin: 
     occ = render_frames(xs, active, cfg)
     m, w = target.masks, target.weights
     dist = jax.vmap(particle_distance, in_axes=(0, 0, 0, None, None))(xs, active, target.dist, cfg, margin)
-    n_act = jnp.maximum(jnp.sum(active, axis=1), 1)
+    n_act = jnp.maximum(jnp.sum(active, axis=1), 1).astype(xs.dtype)
     ch = jax.vmap(chamfer, in_axes=(0, 0, 0, 0, None, None))(xs, active, target.points, target.point_weights,
                                                              cfg, margin)
     pw = target.point_weights

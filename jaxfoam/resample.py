@@ -244,7 +244,7 @@ def nearest_within(x, active, radius: float, grid: Grid, cell_capacity: int = 4)
     ok_cell = jnp.all((cn >= 0) & (cn < jnp.asarray(shape, jnp.int32)[None, None, :]), axis=-1) & active[:, None]
     qkey = jnp.where(ok_cell, jnp.sum(cn * jnp.asarray(strides, jnp.int32)[None, None, :], -1), total + 1)
     start = jnp.searchsorted(skey, qkey.reshape(-1), side="left").reshape(qkey.shape)
-    pos = start[:, :, None] + jnp.arange(cell_capacity)[None, None, :]                 # (N, 3^d, K)
+    pos = start[:, :, None] + jnp.arange(cell_capacity, dtype=start.dtype)[None, None, :]                 # (N, 3^d, K)
     posc = jnp.minimum(pos, N - 1)
     j = order[posc]
     ok = ok_cell[:, :, None] & (pos < N) & (skey[posc] == qkey[:, :, None]) & (j != jnp.arange(N)[:, None, None])
@@ -374,7 +374,7 @@ def insert(state: State, grid: Grid, config: ResampleConfig, key, hold=None):
     refine = DEFAULT_SDF_REFINE[d] if config.sdf_refine is None else config.sdf_refine
     sdf = material_sdf(xs, act, grid.origin, grid.shape, grid.dx, config.closing_radius, refine)
     inside = sdf(cand) < 0.0
-    sparse = count < config.sparse_fraction * ppc
+    sparse = count.astype(xs.dtype) < config.sparse_fraction * ppc
     if hold is not None:
         held = jnp.zeros((C,), bool).at[jnp.where(act & hold, cflat, C)].set(True, mode="drop")
         sparse = sparse & ~held

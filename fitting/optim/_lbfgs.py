@@ -52,7 +52,7 @@ def _two_loop(grad, s_hist, y_hist, count):
     Unused rows (before M - count) get rho = 0 and drop out of both loops.
     """
     M = s_hist.shape[0]
-    valid = jnp.arange(M) >= M - count
+    valid = jnp.arange(M, dtype=jnp.asarray(count).dtype) >= M - count
     sy = jnp.sum(s_hist * y_hist, axis=1)
     rho = jnp.where(valid, 1.0 / jnp.where(valid, sy, 1.0), 0.0)
 

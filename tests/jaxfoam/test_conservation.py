@@ -90,7 +90,7 @@ def test_p2g_conserves_mass_and_momentum(dim):
 def _totals(state, params):
     """Per-frame record: total mass kg, total momentum kg m/s (d,), sum m|v| kg m/s, least distance of
     the material to the walls of the 0.2 m domain, m."""
-    m = state.mass * state.active
+    m = jnp.where(state.active, state.mass, 0.0)
     return dict(mass=jnp.sum(m), momentum=jnp.sum(m[:, None] * state.v, axis=0),
                 scale=jnp.sum(m * jnp.sqrt(jnp.sum(state.v * state.v, axis=1))),
                 wall_gap=jnp.min(jnp.where(state.active[:, None], jnp.minimum(state.x, 0.2 - state.x), 0.1)))

@@ -42,7 +42,7 @@ def _modal_velocity(state, params):
     """Per-frame record: q = sum m v_x phi / sum m phi^2 (m/s), phi = cos(pi (x - X0) / L); and the
     largest plastic rate (1/s), which must stay 0."""
     phi = jnp.cos(jnp.pi * (state.x[:, 0] - X0) / LENGTH)
-    m = state.mass * state.active
+    m = jnp.where(state.active, state.mass, 0.0)
     return dict(q=jnp.sum(m * state.v[:, 0] * phi) / jnp.sum(m * phi * phi),
                 gamma_max=jnp.max(state.gamma_dot))
 

@@ -96,7 +96,8 @@ def test_a_rollout_vmapped_over_parameters_keeps_its_fusion_boundaries():
 
     def height(mu):
         fr = sim.rollout(params.replace(mu=mu))[1]
-        return jnp.sum(fr["x"][:, :, 1] * fr["active"], axis=1) / jnp.sum(fr["active"], axis=1)
+        return (jnp.sum(jnp.where(fr["active"], fr["x"][:, :, 1], 0.0), axis=1)
+                / jnp.sum(fr["active"], axis=1).astype(fr["x"].dtype))
 
     ens = jax.jit(jax.vmap(height))
     out = ens(mus)

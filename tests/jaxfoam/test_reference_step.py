@@ -21,7 +21,7 @@ def _weights(x, grid):
     """Quadratic B-spline stencil: base node (N, d) int and per-axis weights [3 x (N, d)]."""
     xg = (x - jnp.asarray(grid.origin, x.dtype)[None, :]) / grid.dx
     base = jnp.floor(xg - 0.5).astype(jnp.int32)
-    fx = xg - base
+    fx = xg - base.astype(xg.dtype)
     return base, fx, [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
 
 
@@ -69,7 +69,7 @@ def _boundaries(v, node_x, scene, t):
                                  tang[:, 1:] * scale[:, None]], axis=1)
         hit = (node_x[:, 1] <= scene.floor_y) & (vn < 0)
         v = jnp.where(hit[:, None], ruled, v)
-    lo, hi = jnp.asarray(scene.domain_min)[None, :], jnp.asarray(scene.domain_max)[None, :]
+    lo, hi = jnp.asarray(scene.domain_min, v.dtype)[None, :], jnp.asarray(scene.domain_max, v.dtype)[None, :]
     v = jnp.where(node_x <= lo, jnp.maximum(v, 0.0), v)
     return jnp.where(node_x >= hi, jnp.minimum(v, 0.0), v)
 
@@ -89,7 +89,7 @@ def reference_step(state, p, scene, grid, dt):
     nodes = []
     for off in itertools.product(range(3), repeat=d):
         wt = math.prod(w[off[k]][:, k] for k in range(d))
-        idx = jnp.sum((base + jnp.asarray(off)[None, :]) * jnp.asarray(strides)[None, :], axis=1)
+        idx = jnp.sum((base + jnp.asarray(off, jnp.int32)[None, :]) * jnp.asarray(strides, jnp.int32)[None, :], axis=1)
         r = (jnp.asarray(off, x.dtype)[None, :] - fx) * grid.dx  # x_i - x_p, m
         nodes.append((wt, idx, r))
     gm = jnp.zeros(grid.num_nodes, x.dtype)

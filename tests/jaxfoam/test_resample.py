@@ -33,13 +33,13 @@ def _stretched_annulus(dim, dx, seed=0):
     rng = np.random.default_rng(seed)
     mass = 100.0 * dx ** dim / 2 ** dim * rng.uniform(0.5, 1.5, n)
     state = jaxfoam.make_state(x, mass / 100.0, mass, v=rng.normal(size=(n, dim)), capacity=2 * n)
-    C = jnp.asarray(rng.normal(size=(2 * n, dim, dim))) * state.active[:, None, None]
+    C = jnp.where(state.active[:, None, None], jnp.asarray(rng.normal(size=(2 * n, dim, dim))), 0.0)
     return scene, state.replace(C=C)
 
 
 def _totals(s):
-    m = s.mass * s.active
-    return float(jnp.sum(m)), float(jnp.sum(s.vol0 * s.active)), np.asarray(jnp.sum(m[:, None] * s.v, 0))
+    m = jnp.where(s.active, s.mass, 0.0)
+    return float(jnp.sum(m)), float(jnp.sum(jnp.where(s.active, s.vol0, 0.0))), np.asarray(jnp.sum(m[:, None] * s.v, 0))
 
 
 def _unstretch(x):

@@ -34,10 +34,10 @@ def _record(state, params):
     """Per-frame record: positions (m), total energy (J per metre of depth: kinetic + gravitational
     about y = 0 + stored elastic), largest speed (m/s), lowest particle (m), extreme volume ratios J."""
     J = jaxfoam.det(state.F)
-    m = state.mass * state.active
+    m = jnp.where(state.active, state.mass, 0.0)
     kinetic = 0.5 * jnp.sum(m * jnp.sum(state.v * state.v, axis=1))
     potential = 9.81 * jnp.sum(m * state.x[:, 1])
-    stored = jnp.sum(state.vol0 * state.active * jaxfoam.energy_density(state.F, state.bbar_e, params))
+    stored = jnp.sum(jnp.where(state.active, state.vol0, 0.0) * jaxfoam.energy_density(state.F, state.bbar_e, params))
     return dict(x=state.x, energy=kinetic + potential + stored,
                 speed=jnp.max(jnp.sqrt(jnp.sum(state.v * state.v, axis=1))), y_min=jnp.min(state.x[:, 1]),
                 J_min=jnp.min(J), J_max=jnp.max(J))
