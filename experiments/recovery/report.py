@@ -63,7 +63,7 @@ from jaxfoam.io import read_silhouettes
 from jaxfoam.synth import synthesize
 
 NAME = "recovery"
-ROOT = Path(__file__).resolve().parent
+ROOT = Path(__file__).resolve().parents[1]
 SCENES = ROOT / "scenes"
 WORK = ROOT.parent / "out" / "recovery"
 # Each finished case's record and its small diagnostics (JSON) are committed here, so the tables and chart

@@ -1,0 +1,3 @@
+from experiments.recovery.report import main
+
+main()
