@@ -20,7 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # experiments/ is 
 from experiments import recovery  # noqa: E402
 from fitting.settings import DX_CHECK_RATIO, GCI_SAFETY  # noqa: E402
 
-CASES = Path(recovery.__file__).resolve().parent / "results" / "recovery_cases"
+CASES = recovery.CASES
 
 
 def _record(name):
