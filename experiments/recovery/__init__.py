@@ -4,9 +4,9 @@ For each scene (hanging_plate, drop, squeeze in 2D; hanging_plate in 3D; experim
 and each of three parameter sets in shaving-cream ranges (a seeded Latin hypercube over mu 50-400 Pa,
 sigma_y 15-80 Pa, eta 1-30 Pa s^m log-uniform, m 0.3-1.0 uniform):
 
-1. `jaxfoam.synth.synthesize` renders the scene at dx_data = dx_fit / 2 into tracked-video-like
+1. `fitting.synthesize` renders the scene at dx_data = dx_fit / 2 into tracked-video-like
    silhouettes (boundary pixel noise, dropped frames, plate pixels of weight 0, pixel size dx_data / 2);
-2. `jaxfoam.calibrate.calibrate` fits mu, sigma_y, eta and m at dx_fit from the default starts and
+2. `fitting.calibrate` fits mu, sigma_y, eta and m at dx_fit from the default starts and
    bounds (nothing here is tuned to these data: the fitter's defaults are used as a user would);
 3. the study (never the fitter) reads the file's /truth and reports each parameter's error, whether
    the truth lies inside the 95% interval (the combined one, and the Gauss-Newton part alone),

@@ -27,7 +27,7 @@ from experiments.recovery.cases import (
 from experiments.recovery.checks import measured_check, refit_check, shift_check
 from experiments.recovery.report import report
 from experiments.recovery.runs import load_records, run_study
-from jaxfoam.calibrate import DEFAULT_DX_REFIT
+from fitting.settings import DEFAULT_DX_REFIT
 
 
 def main(argv=None) -> None:

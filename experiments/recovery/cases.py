@@ -14,8 +14,8 @@ import numpy as np
 
 import fitting
 from experiments import _common  # noqa: F401  (enables float64)
-from jaxfoam.calibrate import DEFAULT_DX_REFIT, DEFAULT_STARTS
-from jaxfoam.synth import synthesize
+from fitting.settings import DEFAULT_DX_REFIT, DEFAULT_STARTS
+from fitting import synthesize
 
 NAME = "recovery"
 ROOT = Path(__file__).resolve().parents[1]  # experiments/
@@ -85,7 +85,7 @@ def _domain(name: str) -> dict:
 
 def default_fit_dx(name: str) -> float:
     """The fitter's default dx (m) for a study scene: its largest domain extent / FIT_CELLS[dim]."""
-    from jaxfoam.calibrate import FIT_CELLS
+    from fitting.settings import FIT_CELLS
 
     dom = _domain(name)
     extent = max(hi - lo for lo, hi in zip(dom["min"], dom["max"]))
@@ -213,7 +213,7 @@ def make_data(c: SceneCase, k: int, quick: bool) -> tuple[Path, float]:
                       **({} if c.ppc is None else {"ppc": c.ppc}), **({} if c.cfl is None else {"cfl": c.cfl}),
                       dtype=jnp.float32 if c.data_dtype == "float32" else jnp.float64)
     if c.dilate_px:
-        from jaxfoam.track import dilate
+        from fitting.track import dilate
 
         grown = np.stack([dilate(m, c.dilate_px) for m in data.masks]) & (data.weights > 0)
         data = dataclasses.replace(data, masks=grown.astype(np.uint8))

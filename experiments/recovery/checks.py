@@ -20,8 +20,8 @@ from experiments.recovery.cases import (
     write_cache,
 )
 from experiments.recovery.scoring import evaluate
-from jaxfoam.calibrate import FitSettings, calibrate
-from jaxfoam.io import read_silhouettes
+from fitting import FitSettings, calibrate
+from fitting import read_silhouettes
 
 # Refit diagnostic of the discretization check: LM iterations on the check's finer grid, from the fit's optimum.
 REFIT_ITERATIONS = 4
@@ -61,7 +61,8 @@ def refit_check(r: dict, compute: bool = True) -> dict | None:
     path, cached = _cached_check(r, "refit")
     if cached is not None or not compute:
         return cached
-    from jaxfoam.calibrate import DX_CHECK_RATIO, fit_transform, make_starts
+    from fitting import fit_transform, make_starts
+    from fitting.settings import DX_CHECK_RATIO
 
     c, fit, data = fit_and_data(r)
     same = _settings_at_optimum(c, fit, dx=c.dx_fit, max_iter=REFIT_ITERATIONS, dx_check=False)
@@ -101,7 +102,8 @@ def shift_check(r: dict, compute: bool = True) -> dict | None:
     path, cached = _cached_check(r, "shift")
     if cached is not None or not compute:
         return cached
-    from jaxfoam.calibrate import build_problem, make_starts, predicted_move
+    from fitting import build_problem, make_starts
+    from fitting.check import predicted_move
 
     c, fit, data = fit_and_data(r)
     settings = _settings_at_optimum(c, fit, dx=c.dx_fit, dx_check=False)
@@ -130,7 +132,7 @@ def record_optimum(r: dict):
     """(transform, theta (p,), z (p,)) of finished fit r: the fitter's transform for its bounds and fixed
     parameters, and its optimum in physical and fitted coordinates (a value on a bound taken just inside it,
     as `make_starts` does)."""
-    from jaxfoam.calibrate import fit_transform, make_starts
+    from fitting import fit_transform, make_starts
 
     st = r["fit"]["settings"]
     settings = FitSettings(bounds={n: tuple(b) for n, b in st["bounds"].items()}, fixed=dict(st["fixed"]),
@@ -149,12 +151,8 @@ def with_measured_move(r: dict, measured_z, iterations: int) -> dict:
     keeps its bounds. Uses no truth."""
     from types import SimpleNamespace
 
-    from jaxfoam.calibrate import (
-        check_error,
-        combine_intervals,
-        judge_reported_intervals,
-        numerical_half_width,
-    )
+    from fitting import combine_intervals, judge_reported_intervals
+    from fitting.check import check_error, numerical_half_width
 
     fit = json.loads(json.dumps(r["fit"]))
     check = fit["settings"]["dx_check"]
@@ -194,7 +192,9 @@ def measured_check(r: dict, compute: bool = True, iterations: int | None = None)
     Jacobian, which the check computed already, are timed apart as `wall_first`). Uses no truth. Cached in
     CASES/<case>_<optimizer>_measured<iterations>.json; None
     when not cached and `compute` is False."""
-    from jaxfoam.calibrate import DX_CHECK_RATIO, build_problem, make_starts, refit_move
+    from fitting import build_problem, make_starts
+    from fitting.check import refit_move
+    from fitting.settings import DX_CHECK_RATIO
 
     iterations = fitter_refit(r) if iterations is None else int(iterations)
     path = CASES / f"{r['case']}_{r['optimizer']}_measured{iterations}.json"

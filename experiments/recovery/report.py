@@ -50,7 +50,7 @@ from experiments.recovery.report_tables import (
 )
 from experiments.recovery.runs import load_records
 from experiments.recovery.scoring import GOALS, goodness, param_error
-from jaxfoam.calibrate import DEFAULT_STARTS, FRAME_BOUNDARY_SPACINGS
+from fitting.settings import DEFAULT_STARTS, FRAME_BOUNDARY_SPACINGS
 
 # The study's conclusions, written from its tables (appended to the full report only).
 VERDICT = Path(__file__).resolve().parent / "verdict.md"
@@ -81,7 +81,7 @@ def _run_summary(quick: bool, jobs: list[tuple], recs: list[dict]) -> str:
         body.append(
             f"**Time step of fits with a dropped frame (2026-11-24).** Every frame of a rollout runs the same "
             f"number of substeps, sized for its widest frame interval, so until the fitter filled gaps in the "
-            f"data with unobserved frames (`jaxfoam.calibrate.simulation_frames`), a frame dropped inside the "
+            f"data with unobserved frames (`fitting.problem.simulation_frames`), a frame dropped inside the "
             f"fitted span made every frame run at half (or a third of) the fit's CFL time step, for 2-3x the "
             f"cost: the datasets of sets 1 and 2 have such a gap in every scene. The main table's LM fits, the "
             f"optimizer comparison's and the default grid's squeeze fits were re-run with the gaps filled (the "

@@ -23,7 +23,7 @@ from experiments.recovery.report_tables import (
     wall_span,
 )
 from experiments.recovery.scoring import evaluate
-from jaxfoam.calibrate import DEFAULT_DX_REFIT, DEFAULT_STARTS, FIT_CELLS
+from fitting.settings import DEFAULT_DX_REFIT, DEFAULT_STARTS, FIT_CELLS
 
 
 def shift_section(lm: list[dict]) -> str:
@@ -291,7 +291,7 @@ def check_change_section(groups: list[tuple[str, list[dict]]], names) -> str:
     return ("\n## Discretization check: the fit grid's Jacobian against both grids' (LM)\n\n"
             "The same optima, re-reported from their fit logs after the check changed (2026-11-24) from one "
             "estimate of the move between dx and dx / sqrt(2), with the fit grid's Jacobian, to the larger of that "
-            "and the estimate with each grid's own Jacobian (`jaxfoam.calibrate.DX_CHECK_JACOBIAN`, "
+            "and the estimate with each grid's own Jacobian (`fitting.settings.DX_CHECK_JACOBIAN`, "
             "docs/calibrate.md). Parameter-cases with the truth inside the reported interval, with the goal met "
             "(within tolerance, or not identifiable with the truth inside), and reported identifiable:\n\n"
             + C.md_table(["fits", "n", "inside: fit grid's J", "inside: both", "goal met: fit grid's J",

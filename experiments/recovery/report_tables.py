@@ -11,7 +11,7 @@ from experiments import _common as C
 from experiments.recovery.cases import CASES, DATA, case_of
 from experiments.recovery.checks import record_optimum
 from experiments.recovery.scoring import goodness, shear_rates, truth_frames, truth_loss
-from jaxfoam.calibrate import FRAME_BOUNDARY_SPACINGS
+from fitting.settings import FRAME_BOUNDARY_SPACINGS
 
 
 def _theta_of_move(r: dict, name: str, v: float, base: float = 0.0) -> tuple[float, float]:
@@ -89,10 +89,10 @@ def fmt_shear(r: dict) -> str:
 
 def halved_step(r: dict) -> float:
     """How many times narrower than the fitter's time step a finished fit ran: 1 for a fit made with gap
-    filling (`jaxfoam.calibrate.simulation_frames`) or whose data have no gap, k > 1 for a fit made before
+    filling (`fitting.problem.simulation_frames`) or whose data have no gap, k > 1 for a fit made before
     it whose data have a frame dropped inside the fitted span, so that every frame ran the substeps of
     its widest interval (k = that interval over the narrowest). Computed from the record's times."""
-    from jaxfoam.calibrate import simulation_frames
+    from fitting.problem import simulation_frames
 
     d = r["fit"]["data"]
     times = np.asarray(d["times"], float)[d["frames_used"]]

@@ -30,13 +30,14 @@ from experiments.recovery.cases import (
     write_atomic,
 )
 from experiments.recovery.scoring import GOALS, evaluate
-from jaxfoam.calibrate import DX_CHECK_JACOBIAN, GCI_SAFETY, FitSettings, calibrate
-from jaxfoam.io import read_silhouettes
+from fitting import FitSettings, calibrate
+from fitting.settings import DX_CHECK_JACOBIAN, GCI_SAFETY
+from fitting import read_silhouettes
 
 
 def reported_with_current_rules(record: dict) -> bool:
     """Whether a finished fit's intervals were computed with the fitter's current uncertainty rules
-    (the discretization check's safety factor `jaxfoam.calibrate.GCI_SAFETY`, its Jacobian,
+    (the discretization check's safety factor `fitting.settings.GCI_SAFETY`, its Jacobian,
     `DX_CHECK_JACOBIAN`, records from before the latter was recorded reused the fit grid's, and its measured
     move, `DEFAULT_DX_REFIT` iterations for the scene's dimension). The report applies the measured move to
     older records from a cache instead (`with_current_check`)."""

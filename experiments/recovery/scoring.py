@@ -18,8 +18,8 @@ from experiments.recovery.cases import (
     truth_sets,
     write_cache,
 )
-from jaxfoam.calibrate import FitSettings
-from jaxfoam.io import read_silhouettes
+from fitting import FitSettings
+from fitting import read_silhouettes
 
 # Goals of the issue: relative error for mu, sigma_y, eta; absolute for m.
 GOALS = {"mu": ("rel", 0.10), "sigma_y": ("rel", 0.10), "eta": ("rel", 0.25), "m": ("abs", 0.1)}
@@ -52,7 +52,7 @@ def shear_rates(c: SceneCase, k: int, quick: bool) -> dict:
 
 def _fit_problem(c: SceneCase, k: int, quick: bool):
     """(data, the fit's `CalibrationProblem`) of a case: its grid, time window and seed, LM settings."""
-    from jaxfoam.calibrate import build_problem
+    from fitting import build_problem
 
     data = read_silhouettes(data_path(c, k, quick))
     return data, build_problem(data, FitSettings(dx=c.dx_fit, optimizer="lm", seed=0, time_window=c.window,
@@ -75,14 +75,15 @@ def truth_loss(c: SceneCase, k: int, quick: bool) -> float:
 
 def truth_frames(c: SceneCase, k: int, quick: bool) -> dict:
     """Per used frame, how far the fit grid's silhouette at the true parameters lies from the data: the
-    fitter's goodness-of-fit measure (`jaxfoam.calibrate.silhouette_mismatch`, mean boundary distance, in
+    fitter's goodness-of-fit measure (`fitting.silhouette_mismatch`, mean boundary distance, in
     particle spacings) and the frame times, s. Shows in which phase of a scene the fit grid and the data
     grid differ. One rollout at dx_fit; cached in CASES/<case>_truthframes.json."""
     path = CASES / f"{case_id(c, k, quick)}_truthframes.json"
     if path.exists():
         return json.loads(path.read_text())
-    from jaxfoam.calibrate import FIT_PPC, silhouette_mismatch
-    from jaxfoam.silhouette import particle_spacing
+    from fitting import silhouette_mismatch
+    from fitting.settings import FIT_PPC
+    from fitting.silhouette import particle_spacing
 
     data, problem = _fit_problem(c, k, quick)
     occ = problem.render({n: data.truth[n] for n in problem.transform.names})
@@ -98,8 +99,8 @@ def goodness(r: dict) -> tuple[float, float]:
     against its data: the fitter's goodness-of-fit check (`FitResult.frame_iou`, `.frame_boundary_error`,
     `.frame_boundary_limit`). Fits recorded before the check existed get it from one rollout at the
     fitted parameters, cached in CASES/<case>_<optimizer>_gof.json. NaNs if it cannot be computed."""
-    from jaxfoam.calibrate import FIT_PPC
-    from jaxfoam.silhouette import particle_spacing
+    from fitting.settings import FIT_PPC
+    from fitting.silhouette import particle_spacing
 
     fit = r["fit"]
     dim = 3 if r["scene"].endswith("3d") else 2
@@ -109,7 +110,7 @@ def goodness(r: dict) -> tuple[float, float]:
     path = CASES / f"{r['case']}_{r['optimizer']}_gof.json"
     if not path.exists():
         try:
-            from jaxfoam.calibrate import build_problem, silhouette_mismatch
+            from fitting import build_problem, silhouette_mismatch
 
             data = read_silhouettes(WORK / f"{r['case']}_data.h5")
             problem = build_problem(data, FitSettings(dx=r["dx_fit"], optimizer="lm", seed=0))
