@@ -236,7 +236,7 @@ def nearest_within(x, active, radius: float, grid: Grid, cell_capacity: int = 4)
     origin = jnp.asarray(grid.origin, x.dtype)
     c = jnp.clip(jnp.floor((x - origin[None, :]) / radius).astype(jnp.int32), 0,
                  jnp.asarray(shape, jnp.int32)[None, :] - 1)
-    key = jnp.where(active, sum(c[:, k] * strides[k] for k in range(d)), total)
+    key = jnp.where(active, jnp.sum(c * jnp.asarray(strides, jnp.int32)[None, :], -1), total)
     order = jnp.argsort(key)
     skey = key[order]
     offs = jnp.asarray(list(itertools.product((-1, 0, 1), repeat=d)), jnp.int32)     # (3^d, d)
@@ -244,7 +244,7 @@ def nearest_within(x, active, radius: float, grid: Grid, cell_capacity: int = 4)
     ok_cell = jnp.all((cn >= 0) & (cn < jnp.asarray(shape, jnp.int32)[None, None, :]), axis=-1) & active[:, None]
     qkey = jnp.where(ok_cell, jnp.sum(cn * jnp.asarray(strides, jnp.int32)[None, None, :], -1), total + 1)
     start = jnp.searchsorted(skey, qkey.reshape(-1), side="left").reshape(qkey.shape)
-    pos = start[:, :, None] + jnp.arange(cell_capacity, dtype=start.dtype)[None, None, :]                 # (N, 3^d, K)
+    pos = start[:, :, None] + jnp.arange(cell_capacity, dtype=start.dtype)[None, None, :]  # (N, 3^d, K)
     posc = jnp.minimum(pos, N - 1)
     j = order[posc]
     ok = ok_cell[:, :, None] & (pos < N) & (skey[posc] == qkey[:, :, None]) & (j != jnp.arange(N)[:, None, None])
@@ -383,7 +383,7 @@ def insert(state: State, grid: Grid, config: ResampleConfig, key, hold=None):
     # In each cell accept `deficit` eligible candidates in a random order.
     prio = jnp.where(eligible, jax.random.uniform(k_prio, (C, k ** d), dt_), 2.0)
     rank = jnp.argsort(jnp.argsort(prio, axis=1), axis=1)
-    accept = (eligible & (rank < deficit[:, None])).reshape(-1)
+    accept = (eligible & (rank < deficit[:, None].astype(rank.dtype))).reshape(-1)
 
     # Compress the accepted candidates into at most N free slots.
     n_free = jnp.sum(~act)
@@ -402,9 +402,9 @@ def insert(state: State, grid: Grid, config: ResampleConfig, key, hold=None):
     W = _to_grid(cidx, cw, jnp.ones((N, 1), dt_), grid.num_nodes)[:, 0]
     has_new = W > 0
     f = jnp.where(has_new, W / jnp.where(has_new, n_old + W, 1.0), 0.0)  # share each node gives away
-    m = state.mass * act
+    m = state.mass * act.astype(dt_)
     q = _pack(state)
-    pools = _to_grid(pidx, pw, jnp.concatenate([m[:, None], (state.vol0 * act)[:, None], m[:, None] * q],
+    pools = _to_grid(pidx, pw, jnp.concatenate([m[:, None], (state.vol0 * act.astype(dt_))[:, None], m[:, None] * q],
                                                axis=1), grid.num_nodes) * f[:, None]
     share = jnp.where(has_new[:, None], pools / jnp.where(has_new, W, 1.0)[:, None], 0.0)
     got = _from_grid(cidx, cw, share)
