@@ -18,6 +18,7 @@ from experiments import rheometer  # noqa: E402
 RATES = np.logspace(-2, 3, 6)  # 1/s
 
 
+@pytest.mark.slow
 def test_material_point_reaches_the_finite_strain_flow_curve():
     p = rheometer.FOAM
     exact = jaxfoam.hb_steady_shear_stress(RATES, p)

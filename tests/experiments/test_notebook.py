@@ -13,6 +13,7 @@ NOTEBOOK = Path(__file__).resolve().parents[2] / "experiments" / "notebooks" / "
 CELL_TIMEOUT = 300
 
 
+@pytest.mark.slow
 def test_calibration_notebook_runs_and_recovers_sigma_y(tmp_path, monkeypatch):
     # The notebook writes its files to a fresh tempfile.mkdtemp folder: keep it in pytest's tmp_path
     # (the kernel inherits TMPDIR) so that test runs do not leave folders in the system's temp dir.

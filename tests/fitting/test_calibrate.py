@@ -55,6 +55,7 @@ def slump(tmp_path_factory):
     return path, out, json.loads(out.read_text())
 
 
+@pytest.mark.slow
 def test_fit_recovers_yield_stress_from_finer_synthetic_data(slump):
     """The fitted sigma_y is within 15% of the truth; fit.json holds the parameters (known inputs from the
     scene), interval, loss history and settings; pictures and the fit log are written beside it."""
@@ -250,6 +251,7 @@ def test_fit_continued_from_its_own_result_stays_there(slump, tmp_path):
     assert fit["iterations"] <= 3 and fit["reason"] != "max_iterations"
 
 
+@pytest.mark.slow
 def test_discretization_check_predicts_the_refit_on_the_finer_grid(slump, monkeypatch):
     """The check's predicted move of the estimate from dx to dx / sqrt(2) (the larger of its two
     first-order estimates) has the sign and, within a factor 1.6, the size of the move of a converged refit
@@ -364,6 +366,7 @@ def test_reported_interval_that_fills_the_bounds_is_not_identifiable():
     assert ident == {"mu": False, "m": True} and "wider than 1 times its value 200" in notes[0]
 
 
+@pytest.mark.slow
 def test_a_fit_that_does_not_reproduce_its_data_reports_its_bounds(slump):
     """Goodness-of-fit contract: the local interval assumes a fit that reproduces the data. At sigma_y =
     6x the truth (150 Pa against rho g H = 78 Pa) the column hardly slumps, the fitted boundaries lie
@@ -434,6 +437,7 @@ def test_silhouette_mismatch_of_shifted_squares_and_weights():
     assert FRAME_BOUNDARY_SPACINGS >= 0.5
 
 
+@pytest.mark.slow
 def test_threaded_jacobian_columns_match_sequential_groups_and_finite_differences(slump):
     """Contract of `CalibrationProblem.residual_and_jacobian` on the CPU: 3 fitted parameters run as 2
     concurrent groups of 2 jvp rollouts (the last padded with a zero direction). The result equals the
@@ -466,6 +470,7 @@ def test_threaded_jacobian_columns_match_sequential_groups_and_finite_difference
     assert np.linalg.norm(fd - J[:, 2]) <= 1e-4 * np.linalg.norm(J[:, 2])
 
 
+@pytest.mark.slow
 def test_fit_jacobian_takes_an_adjoint(slump):
     """build_problem(adjoint=...): ForwardMode("vmap") (every tangent through one rollout) gives the
     default route's Jacobian to round-off (1e-10 relative in norm); a reverse-mode adjoint is refused
@@ -488,6 +493,7 @@ def test_fit_jacobian_takes_an_adjoint(slump):
     assert np.linalg.norm(j1 - j0) <= 1e-10 * np.linalg.norm(j0) and np.linalg.norm(j0) > 0
 
 
+@pytest.mark.slow
 def test_float32_fit_problem_matches_float64_to_single_precision(slump):
     """`FitSettings.dtype = "float32"` (`jaxfoam fit --dtype float32`): the same problem's residual and
     Jacobian columns agree with float64's to single precision after the rollout (measured 2.8e-5 for r
@@ -526,6 +532,7 @@ def test_simulation_frames_fill_gaps_up_to_the_narrowest_interval():
     np.testing.assert_allclose(t[idx], [0.001, 1.0])
 
 
+@pytest.mark.slow
 def test_a_dropped_frame_keeps_the_time_step_and_the_other_frames_residuals(slump):
     """Contract of the gap filling: data with a frame missing in the middle are fitted with the same
     substeps per frame as the full data (before, every frame ran at half the time step: 2x the cost),
@@ -577,6 +584,7 @@ def test_a_stopped_fit_says_how_to_resume(slump, tmp_path, capsys, monkeypatch):
     resume_matches_reference(path, log, tmp_path, ref)
 
 
+@pytest.mark.slow
 def test_time_window_fits_only_its_frames_and_stops_the_rollouts_there(slump):
     """FitSettings.time_window = (0, 0.13) s on the slump data (frames at 0, 0.06, ..., 0.3 s; the first
     is the initial shape): the problem uses frames 1 and 2 only, its rollouts end at 0.12 s, and its

@@ -53,6 +53,7 @@ def data(tmp_path_factory):
     return d, path, json.loads(ref.read_text()), read_fitlog(d / "ref.fitlog.h5")["runs"][0]
 
 
+@pytest.mark.slow
 def test_sigkill_after_the_third_iteration_then_resume_gives_the_uninterrupted_fit(data, tmp_path):
     d, path, ref, ref_log = data
     assert ref["iterations"] >= 4, "the reference fit must run past the kill"
@@ -83,6 +84,7 @@ def test_sigkill_after_the_third_iteration_then_resume_gives_the_uninterrupted_f
     np.testing.assert_allclose(resumed["x"], ref_log["x"], rtol=1e-10, atol=0)
 
 
+@pytest.mark.slow
 def test_truncated_or_altered_fit_log_is_refused_on_resume(data, tmp_path):
     d, path, ref, _ = data
     log = tmp_path / "cut.fitlog.h5"
@@ -113,6 +115,7 @@ def _frames(path):
         return {k: f["frames"][k][()] for k in f["frames"]}, f["times"][()], dict(f["params"].attrs)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dtype", ["float32", "float64"])
 def test_same_command_twice_is_bit_identical(tmp_path, dtype):
     outs = [tmp_path / f"run{k}.h5" for k in range(2)]
@@ -126,6 +129,7 @@ def test_same_command_twice_is_bit_identical(tmp_path, dtype):
         assert a[k].dtype == b[k].dtype and a[k].tobytes() == b[k].tobytes(), k
 
 
+@pytest.mark.slow
 def test_two_concurrent_writers_leave_one_valid_file(tmp_path):
     """Two runs with different parameters write the same path at once: both succeed, and the file is one
     whole run (its frames are those of the run whose parameters it records), complete, with no leftovers."""
@@ -149,6 +153,7 @@ def test_two_concurrent_writers_leave_one_valid_file(tmp_path):
         assert got[k].tobytes() == want[k].tobytes(), k
 
 
+@pytest.mark.slow
 def test_killed_simulate_leaves_the_previous_output_and_an_incomplete_partial(tmp_path):
     out = tmp_path / "run.h5"
     res = run("simulate", HANGING, "--out", out, *TINY_SIM, cwd=tmp_path)
@@ -170,6 +175,7 @@ def test_killed_simulate_leaves_the_previous_output_and_an_incomplete_partial(tm
         assert not f.attrs["complete"] and f["times"].shape[0] >= 1
 
 
+@pytest.mark.slow
 def test_sigterm_while_the_first_evaluation_compiles_exits_143_and_resumes(data, tmp_path):
     d, path, ref, _ = data
     out = tmp_path / "fit.json"
@@ -193,6 +199,7 @@ def test_sigterm_while_the_first_evaluation_compiles_exits_143_and_resumes(data,
     np.testing.assert_allclose(fit["loss_history"], ref["loss_history"], rtol=1e-10, atol=0)
 
 
+@pytest.mark.slow
 def test_fit_without_matplotlib_skips_its_pictures_and_succeeds(data, tmp_path, capsys, monkeypatch):
     """The optional dependency is checked before any work: a notice, then the fit runs to its result."""
     import fitting.cli  # the fit command checks its optional dependencies there

@@ -111,6 +111,7 @@ def _settings(**kw):
                        fracture=RecordingFracture(density_ratio=0.45), **kw)
 
 
+@pytest.mark.slow
 def test_loss_gradient_with_resampling_and_fracture_matches_central_differences(data):
     silh, _ = data
     problem = build_problem(silh, _settings())

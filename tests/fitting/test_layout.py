@@ -42,6 +42,7 @@ def test_jaxfoam_modules_do_not_import_fitting():
     assert offenders == []
 
 
+@pytest.mark.slow
 def test_simulating_never_loads_the_calibration_package():
     code = ("import sys, jax.numpy as jnp, jaxfoam, jaxfoam.cli\n"
             "s = jaxfoam.load_scene('experiments/scenes/drop_2d.json')\n"

@@ -6,6 +6,7 @@ CFL number and precision, and the fitter (FitSettings, `jaxfoam fit`, `build_pro
 so the written advice and the code cannot drift apart.
 """
 import argparse
+import pytest
 import math
 import re
 from pathlib import Path
@@ -43,6 +44,7 @@ def test_calibrate_constants_equal_the_model_choice_block():
     assert calibrate.FIT_DTYPE == d["dtype"]
 
 
+@pytest.mark.slow
 def test_fitter_uses_the_constants(tmp_path):
     """FitSettings, the `jaxfoam fit` parser and build_problem take their defaults from the constants."""
     assert calibrate.FitSettings().dtype == calibrate.FIT_DTYPE

@@ -37,6 +37,7 @@ def _hang(dx):
     return float(y.mean()), float((y > HANGING_Y).mean())
 
 
+@pytest.mark.slow
 def test_hanging_foam_tears_off_alike_at_dx_and_half_dx():
     """Mean height (m) and hanging fraction at t = 0.5 s agree between dx = 1 cm and 5 mm, and the
     foam has torn off (most of it fell) on both grids."""
@@ -51,6 +52,7 @@ def test_hanging_foam_tears_off_alike_at_dx_and_half_dx():
 HOLDING = dict(mu=233.3, sigma_y=49.24, eta=28.31, m=0.3931)
 
 
+@pytest.mark.slow
 def test_first_mask_start_grips_the_plate_like_the_exact_shape(monkeypatch):
     """A fit of a tracked video starts from the first mask, in which the board hides the glued layer. The
     mask is continued into the sticky board where the foam meets it (`fitting.io.glue_under_plates`),
@@ -108,6 +110,7 @@ TOUCHING = {
 }
 
 
+@pytest.mark.slow
 def test_shape_ending_at_a_sticky_face_is_continued_into_the_plate():
     """A primitive shape that meets a sticky plate's bottom face without entering it is continued into
     the plate (`jaxfoam._scene.continued_into_plates`), so the grip no longer depends on the grid: before,

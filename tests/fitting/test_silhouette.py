@@ -97,6 +97,7 @@ def test_splat_conserves_total_coverage_and_ignores_inactive():
     np.testing.assert_allclose(dens2, dens, atol=1e-15)
 
 
+@pytest.mark.slow
 def test_3d_silhouette_is_the_projection_whatever_the_depth():
     """3D blocks 8 and 20 layers deep seen along -z: depth-normalized coverage ~ 1 inside, and the
     silhouette is the (x, y) block (a plain layer count would dilate it by ~1 kernel width);

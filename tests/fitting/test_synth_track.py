@@ -49,6 +49,7 @@ def synth_clean(tmp_path_factory):
     return read_silhouettes(out)
 
 
+@pytest.mark.slow
 def test_synth_file_round_trips_with_truth_and_gaps(synth_clean):
     d = synth_clean
     assert d.truth == dict(PARAMS, kappa=2000.0, rho=80.0)
@@ -110,6 +111,7 @@ def test_synth_noise_flips_boundary_pixels_only(synth_clean, tmp_path):
     np.testing.assert_array_equal(again.masks, noisy.masks)
 
 
+@pytest.mark.slow
 def test_synth_cfl_sets_the_data_time_step_not_the_motion(synth_clean):
     """`cfl` (another simulator's time step): the substeps scale as 1 / CFL (ceil) and are recorded in
     the file's source; the silhouettes are those of the same motion (IoU > 0.95 against CFL 0.3)."""

@@ -40,6 +40,7 @@ def _run(adhesion):
     return float(com(st)), float(com(run(st)))
 
 
+@pytest.mark.slow
 def test_contact_holds_below_its_adhesion_and_lets_go_above():
     y0, strong = _run(100.0)
     _, weak = _run(10.0)

@@ -2,6 +2,7 @@
 jnp.maximum / jnp.minimum / jnp.clip, NaN passed through (so a blow-up is still reported), and
 derivatives that are 0 or 1 (no tie splitting)."""
 import jax
+import pytest
 import jax.numpy as jnp
 import numpy as np
 
@@ -55,6 +56,7 @@ def _box_scene(dim, sticky, floor_y):
                           "initial_shape": {"type": "box", "min": [0.1] * dim, "max": [0.2] * dim}})
 
 
+@pytest.mark.slow
 def test_floor_on_its_node_layers_equals_the_masked_floor():
     """grid_update applies the floor to its static node layers (a slice) and the mask form to every
     node: the same velocities, bit for bit, in 2D and 3D, float64 and float32, sticky and with Coulomb

@@ -30,6 +30,7 @@ def test_threshold_and_unknown_counts(monkeypatch):
     assert calls == [1]
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not os.path.exists("/proc/self/maps"), reason="needs Linux /proc")
 def test_clearing_releases_compiled_programs_mappings():
     """Rollouts compiled on three grids add mappings (hundreds each) that a forced release gives back

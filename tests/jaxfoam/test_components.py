@@ -20,6 +20,7 @@ def _random_state(d, n=7, seed=0):
                       C=jnp.asarray(rng.normal(size=(n, d, d))))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("d, kept", [(2, 4), (3, 6)])
 def test_component_form_keeps_the_independent_components_of_bbar_and_round_trips_exactly(d, kept):
     """bbar_e is symmetric (and in plane strain has no xz, yz): the working form keeps 4 (2D) or 6 (3D)

@@ -122,6 +122,7 @@ def test_rollout_conserves_mass_and_momentum(dim):
     assert float(np.min(rec["wall_gap"])) > 0.04
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dim", [2, 3])
 def test_g2p_reproduces_affine_field(dim):
     """Grid velocities v_i = A x_i + b (m/s) give particle v_p = A x_p + b and C_p = A (1/s) to round-off."""

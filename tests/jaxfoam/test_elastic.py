@@ -54,6 +54,7 @@ def _zero_crossings(t, q):
     return t[k] - q[k] * (t[k + 1] - t[k]) / (q[k + 1] - q[k])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dim", [2])
 def test_elastic_bar_period(dim):
     """The fundamental axial mode of a free elastic bar has period 2 L / c_bar within 10%.

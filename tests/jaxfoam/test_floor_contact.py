@@ -35,6 +35,7 @@ def block_scene(contact, friction, dim=2, lift=0.0, v0=0.0):
         "initial_velocity": [v0, 0.0] + z})
 
 
+@pytest.mark.slow
 def test_particle_floor_rule_on_single_particles():
     """One substep's contact: a particle falling at 1 m/s with a 1 mm gap under its extent (dt 10 ms)
     is slowed to land exactly (v_y = -0.1 m/s); the 0.9 m/s removed costs friction 0.5 x 0.9 of its
@@ -53,6 +54,7 @@ def test_particle_floor_rule_on_single_particles():
     assert np.all(np.isfinite(np.asarray(g)))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("friction", [0.5, "sticky"])
 def test_landed_foam_rests_on_the_floor_with_particle_contact_and_a_cell_above_it_with_grid_contact(friction):
     """Foam dropped from 5 cm, at rest after 0.6 s: with particle contact its lowest particles lie at
@@ -67,6 +69,7 @@ def test_landed_foam_rests_on_the_floor_with_particle_contact_and_a_cell_above_i
         assert lowest["grid"] > 0.5 * dx, (dx, lowest)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("contact,dim,dx", [("grid", 2, 0.005), ("particle", 2, 0.005), ("particle", 3, 0.01)])
 def test_sliding_block_decelerates_at_friction_times_g(contact, dim, dx):
     """Coulomb's law: an elastic block launched at 0.5 m/s along a floor with friction 0.3 slows at
@@ -78,6 +81,7 @@ def test_sliding_block_decelerates_at_friction_times_g(contact, dim, dx):
     assert abs(decel / (0.3 * G) - 1.0) < 0.03, (decel, vx)
 
 
+@pytest.mark.slow
 def test_particle_contact_rollout_gradient_matches_central_differences():
     """d(mean x of the sliding block at 0.1 s) / d(floor friction, mu) through a rollout with particle
     contact: reverse mode against central differences in float64 (every bottom particle stays in
@@ -110,6 +114,7 @@ def test_floor_contact_is_validated_and_recorded():
     assert jf.load_scene({**block_scene("grid", 0.5).spec, "floor": {"y": 0.0}}).floor_contact == "grid"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize("friction", [0.7, "sticky"])
 def test_particle_contact_grid_rule_acts_only_on_touched_floor_nodes(dim, friction):

@@ -87,6 +87,7 @@ def runs():
     return out
 
 
+@pytest.mark.slow
 def test_fracture_releases_tension(runs):
     """The force the top plate exerts on the foam balances the chain's tension: it builds up to
     > 0.5 N/m (upward) in plain MPM; with fracture the weak chain carries no tension and the force
@@ -107,6 +108,7 @@ def test_separated_piece_falls_freely(runs):
     assert acc["plain"] > -0.5 * G, acc
 
 
+@pytest.mark.slow
 def test_intact_material_is_never_weak():
     """A jittered block (corners included) in 2D and 3D stays above the default thresholds; the
     single file of points 0.8 dx apart is below it."""
@@ -131,6 +133,7 @@ def test_config_validation_names_the_field():
         FractureConfig(density_ratio=1.5).validate(2)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["shaving_cream_3d", "pie_throw", "smore"])
 def test_showcase_scene_loads_and_runs_finite(name):
     """Every showcase file parses (scene, parameters, SDF colliders, resampling and fracture

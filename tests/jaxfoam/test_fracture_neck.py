@@ -28,6 +28,7 @@ def _thickness(dim, lo, hi, dx):
     return h, np.asarray(st.x)
 
 
+@pytest.mark.slow
 def test_slab_thickness_is_its_width_at_any_resolution():
     """A slab 2 mm wide (h_c / 2) reads 2 mm within 4% at its middle, at dx 1 mm and 0.5 mm (the
     estimate does not depend on dx); in 3D (a sheet, dx 1 mm) too."""
@@ -42,6 +43,7 @@ def test_slab_thickness_is_its_width_at_any_resolution():
             assert h[mid].max() < 0.6 * H_C, (dim, dx, h[mid].max())
 
 
+@pytest.mark.slow
 def test_block_surfaces_and_corners_are_thicker_than_h_c():
     """A 2 cm block (5 h_c) in 2D and 3D: every point, corners included, reads more than 1.25 h_c
     (measured 1.35-1.41 h_c at the corners), the interior sqrt(6) h_c = 2.45 h_c within 0.1 h_c (the
@@ -110,6 +112,7 @@ def pulls():
     return out
 
 
+@pytest.mark.slow
 def test_thin_bridge_breaks_thick_bridge_holds(pulls):
     """Bridge of 1.5 mm (3 points across, h_c / 2): with the neck criterion its pull on the top
     plate stays under 5% of plain MPM's peak (> 0.3 N/m). Bridge of 5 mm (1.67 h_c): the criterion
@@ -131,6 +134,7 @@ def test_neck_thickness_validation_names_the_field():
     assert FractureConfig(neck_thickness=H_C).validate(2).neck_thickness == H_C
 
 
+@pytest.mark.slow
 def test_gradient_through_the_neck_criterion_matches_central_differences():
     """d/d mu of the top block's mean height after 40 substeps of the thin bridge with the neck
     criterion on (weak points released every substep) equals the central difference (step 1e-3 mu)
@@ -163,6 +167,7 @@ def test_gradient_through_the_neck_criterion_matches_central_differences():
     assert abs(g - fd) < 1e-5 * abs(fd) + 1e-15, (g, fd)
 
 
+@pytest.mark.slow
 def test_resampling_leaves_a_fracturing_neck_unfilled():
     """A released neck must be left to thin and separate: with the neck criterion on, the cells of a
     bridge thinner than h_c (1.5 mm, h_c 3 mm, sampled at 1 point per cell: sparse) get no inserted

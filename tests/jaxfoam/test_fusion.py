@@ -18,6 +18,7 @@ def _plain_grid_fn(x, t):
     return jnp.sum(jnp.where(x[:, :1] > 0.5, c[None, :], x) ** 2)
 
 
+@pytest.mark.slow
 def test_hoist_is_the_identity_on_values_and_gradients():
     x = jnp.asarray(np.random.default_rng(0).random((64, 2)))
     t = jnp.float64(0.37)
@@ -80,6 +81,7 @@ def test_the_boundary_survives_xla_in_derivative_programs_only():
     assert "conditional(" not in fwd_hlo
 
 
+@pytest.mark.slow
 def test_a_rollout_vmapped_over_parameters_keeps_its_fusion_boundaries():
     """An ensemble (jax.vmap of a rollout over mu) gives each member's own rollout to round-off, and
     keeps every cond of the substep: their predicates test the time, which the ensemble shares, so

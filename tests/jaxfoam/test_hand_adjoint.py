@@ -69,6 +69,7 @@ def _rel(a, b):
     return float(np.max(np.abs(a - b)) / np.max(np.abs(b)))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("d", [2, 3])
 def test_p2g_adjoint_equals_autodiff_transpose(d):
     """d<ct, grid>/d(x, mv, A, mass): hand-written = autodiff, to round-off (2D and 3D)."""
@@ -82,6 +83,7 @@ def test_p2g_adjoint_equals_autodiff_transpose(d):
         assert _rel(a, b) <= RTOL_AD, f"{name}: relative difference {_rel(a, b):.2e}"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("d", [2, 3])
 def test_p2g_forward_rule_equals_autodiff_jvp_and_transposes(d):
     """Tangent of the grid along (dx, dmv, dA, dmass): the hand-written rule
@@ -107,6 +109,7 @@ def test_p2g_forward_rule_equals_autodiff_jvp_and_transposes(d):
         assert _rel(a, b) <= RTOL_AD, f"vjp {name}: relative difference {_rel(a, b):.2e}"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("d", [2, 3])
 def test_g2p_adjoint_equals_autodiff_transpose(d):
     """d<(cv, cC), (v, C)>/d(x, grid_v): hand-written = autodiff, to round-off (2D and 3D)."""
@@ -129,6 +132,7 @@ def _central(f, args, k, direction, h):
     return (f(*plus) - f(*minus)) / (2 * h)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("d", [2, 3])
 def test_transfer_adjoints_match_central_differences(d):
     """Directional derivatives <hand VJP, e> equal central differences of <ct, transfer(. + h e)>,
@@ -175,6 +179,7 @@ SCENE_2D = {
 PARAMS = jf.Params(mu=200.0, kappa=2000.0, sigma_y=8.0, eta=5.0, m=0.5, rho=80.0)
 
 
+@pytest.mark.slow
 def test_rollout_gradient_same_with_hand_adjoint():
     """Reverse mode through a 2D rollout (yielding foam under a shaken sticky plate, 2 frames of 10
     substeps): the gradient w.r.t. the material parameters, the plate amplitude and the initial
@@ -202,6 +207,7 @@ def test_rollout_gradient_same_with_hand_adjoint():
     assert float(ref[2]) != 0.0 and abs(float(got[2]) - float(ref[2])) <= 1e-10 * abs(float(ref[2]))
 
 
+@pytest.mark.slow
 def test_forward_mode_refused_with_hand_adjoint():
     """The hand-written adjoints are reverse-mode only: jvp through such a rollout raises a TypeError
     (and the default rollout stays forward-differentiable)."""
@@ -214,6 +220,7 @@ def test_forward_mode_refused_with_hand_adjoint():
         jax.jvp(lambda mu: f(mu, True), (200.0,), (1.0,))
 
 
+@pytest.mark.slow
 def test_reverse_jacobian_of_vector_observable():
     """observable_jacobian(adjoint=HandWritten()) of a per-frame observable (T,): each row equals forward mode's
     (relative 1e-9), and a Jacobian w.r.t. the initial positions has shape (T, N, d) whose last row is
@@ -237,6 +244,7 @@ def test_reverse_jacobian_of_vector_observable():
     assert _rel(jx[-1], last.jacobian["state0.x"]) <= 1e-12
 
 
+@pytest.mark.slow
 def test_frame_checkpoint_blocks_same_gradient_less_memory():
     """A frame store above `frame_tape_bytes` splits each frame's substeps into checkpointed blocks
     (here 10 substeps -> 4 blocks of 3, 3, 3 and 1): the reverse-mode gradient is the same to 1e-12

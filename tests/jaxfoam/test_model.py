@@ -51,6 +51,7 @@ def test_make_model_names_the_bad_argument(drop, kwargs, match):
         jf.make_model(drop[0].scene, params_ref=PARAMS, **kwargs)
 
 
+@pytest.mark.slow
 def test_step_jits_with_the_model_as_an_argument(drop):
     """jax.jit(jaxfoam.step) needs no factory: the model is a pytree whose static part is its treedef.
     It equals the step with the model closed over, and a second call with a model of another dt (a
@@ -66,6 +67,7 @@ def test_step_jits_with_the_model_as_an_argument(drop):
     assert step._cache_size() == 1
 
 
+@pytest.mark.slow
 def test_rollout_vmaps_over_parameters_and_initial_states(drop):
     """jax.vmap of jaxfoam.rollout over (params, state0) gives each member's own rollout (1e-12 m)."""
     model, s0 = drop
@@ -83,6 +85,7 @@ def test_rollout_vmaps_over_parameters_and_initial_states(drop):
     assert float(jnp.max(jnp.abs(ens[0] - ens[1]))) > 1e-5
 
 
+@pytest.mark.slow
 def test_one_program_holds_several_models():
     """Two scenes (2D drop and hanging plate, different grids and substeps) in one jitted function:
     each equals its own rollout."""
@@ -101,6 +104,7 @@ def test_one_program_holds_several_models():
     assert models[0][0].substeps != models[1][0].substeps or models[0][0].grid != models[1][0].grid
 
 
+@pytest.mark.slow
 def test_rollout_checks_concrete_inputs_before_any_compute(drop):
     """Parameters out of range, frame intervals wider than the model's substeps allow, and parameters
     whose wave speed puts the substep past the Courant limit are refused, each naming the quantity;
@@ -161,6 +165,7 @@ def test_errors_share_one_base_class():
     assert issubclass(jf.SceneError, ValueError) and issubclass(jf.SimulationError, FloatingPointError)
 
 
+@pytest.mark.slow
 def test_import_leaves_the_jax_configuration_alone():
     """A fresh process: importing jaxfoam keeps float64 off, and asking for float64 then is a clear
     ModelError that says how to enable it; float32 runs."""

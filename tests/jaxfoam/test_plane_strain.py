@@ -26,6 +26,7 @@ Checks: the slab's z-motion is mirror-symmetric about z = W/2 to round-off and o
 never pull); the jittered run (symmetry broken, walls doing real work) stays inside the slab.
 """
 import numpy as np
+import pytest
 
 from jaxfoam import Params, Simulator, init_state, load_scene, make_state
 
@@ -64,6 +65,7 @@ def _extent(x):
     return x[..., 1].max(axis=-1), x[..., 0].max(axis=-1) - x[..., 0].min(axis=-1)
 
 
+@pytest.mark.slow
 def test_plane_strain_equals_thin_slab_between_slip_walls():
     scene2, scene3 = _scene(2), _scene(3)
     state2 = init_state(scene2, DX)

@@ -48,6 +48,7 @@ def _unstretch(x):
     return x
 
 
+@pytest.mark.slow
 def test_insert_conserves_mass_volume_momentum_and_respects_sdf_2d():
     """Insertion moves mass and momentum from neighbours to new points: totals unchanged to round-off;
     every new point lies where the material SDF is negative, inside the stretched annulus, and none in
@@ -85,6 +86,7 @@ def test_insert_conserves_mass_volume_momentum_and_respects_sdf_2d():
     assert D.min() >= cfg.merge_radius * cfg.spacing(DX, 2), (D.min(), cfg.merge_radius * cfg.spacing(DX, 2))
 
 
+@pytest.mark.slow
 def test_material_sdf_fills_gaps_but_keeps_wide_cavities():
     """The closing of two rows of points 1.5 dx apart (a gap narrower than 2 R = 2 dx) is material
     between the rows; the inside of a ring 8 dx across is not, nor is the outside."""
@@ -131,6 +133,7 @@ def test_merge_removes_every_close_pair_and_conserves():
                                np.sum(m[:, None] * x, 0) / m.sum(), rtol=0, atol=1e-14)
 
 
+@pytest.mark.slow
 def test_resample_3d_conserves_and_stays_inside():
     """The same contract in 3D (one implementation for both dimensions)."""
     dx = 1.0 / 16  # the cavity is 3.8 dx across in y and z: wider than the closing's 2 dx
@@ -159,6 +162,7 @@ def test_config_validation_names_the_field():
         R.ResampleConfig(every=0).validate(3)
 
 
+@pytest.mark.slow
 def test_gradient_with_resampling_and_fracture_matches_finite_differences():
     """jax.grad of a rollout observable (the mass-weighted mean height after 20 substeps of a hanging
     block whose lower part is stretched, plus two stray points) with respect to mu, with resampling

@@ -114,6 +114,7 @@ def _run(f, bbar, params, dt):
 # m = 1 and eta = 0: the closed form eq. 15.
 # ------------------------------------------------------------------------------------------------
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dim", [2, 3])
 def test_m1_matches_closed_form_eq15(dim):
     """For m = 1 (Bingham) and eta = 0 (rate-independent) the stress after the return is eq. 15,
@@ -171,6 +172,7 @@ def _eq14_root(s_pre, s_y, mubar, dt, eta, m, iters=200):
     return 0.5 * (lo + hi)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dim", [2, 3])
 def test_general_m_solves_eq14_to_roundoff(dim):
     """For m in {0.1, 0.2, 0.5, 2, 3}, eta in {0, 0.1 .. 1e4} Pa s^m, dt in {1e-5, 1e-3} s and
@@ -260,6 +262,7 @@ def test_newton_iteration_budget(monkeypatch):
     assert spare <= min(1e-13, 2 * floor), f"{budget} Newton iterations leave no spare iteration"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("m", [0.1, 0.3, 0.9])
 def test_no_nan_just_past_yield_shear_thinning(m):
     """m < 1 at s -> s_Y+ (gamma -> 0+, where gamma^(m-1) is singular): finite gamma, stress and
@@ -287,6 +290,7 @@ def test_no_nan_just_past_yield_shear_thinning(m):
 # Elastic states.
 # ------------------------------------------------------------------------------------------------
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dim", [2, 3])
 def test_elastic_states_unchanged(dim):
     """Phi(s_pre) <= 0 accepts the elastic predictor: with f = I an elastic bbar_e comes back
@@ -315,6 +319,7 @@ def test_elastic_states_unchanged(dim):
         assert np.all(np.asarray(getattr(grad, name)) == 0.0), name
 
 
+@pytest.mark.slow
 def test_scalar_and_batched_agree():
     """Leading axes broadcast: a single material point (no batch axis) gives the batched answer."""
     f, bbar, params, dt, _ = _cases(3, (0.5,), (1.0,), seed=9)
@@ -357,6 +362,7 @@ def test_return_map_renormalizes_to_det_one_at_extreme_strain():
         assert abs(float(jnp.linalg.det(bnew)) - 1.0) <= 1e-12 and np.isfinite(float(s_new))
 
 
+@pytest.mark.slow
 def test_float32_rate_with_its_shorter_iteration_budget_is_as_accurate_as_float32_allows(monkeypatch):
     """In float32 the solve runs RETURN_MAP_NEWTON_ITERS_F32 (= 3) Halley steps: over the shaving-cream
     and beyond ranges (m in [0.1, 3], eta in [0, 1e4] Pa s^m, a in [1e-6, 1e3] Pa s, b in [1e-6, 1e4] Pa)

@@ -195,6 +195,7 @@ def test_dbbar_dbbar_n_matches_finite_differences(grid_cases):
     assert np.all(noise < RTOL * scale)
 
 
+@pytest.mark.slow
 def test_forward_and_reverse_mode_agree(grid_cases):
     """<u, J v> by jvp equals <J^T u, v> by vjp, for d(bbar_new, s_new) / d(bbar_n, params)."""
     f, b, theta = (grid_cases[k] for k in ("f", "b", "theta"))
@@ -367,6 +368,7 @@ def test_hb_rate_finite_everywhere(m):
 TINY_MASSES = (1e-4, 1e-12, 1e-20, 1e-28, 1e-33, 0.0)
 
 
+@pytest.mark.slow
 def test_safe_div_derivative_finite_in_float32_for_tiny_masses():
     """d(mv/m) in float32: the textbook quotient rule squares m (1e-33^2 underflows to 0 -> inf/NaN);
     safe_div's (dmv - q dm)/m stays finite and matches the float64 derivative."""
@@ -393,6 +395,7 @@ def test_safe_div_derivative_finite_in_float32_for_tiny_masses():
     assert not bool(jnp.all(jnp.isfinite(g_naive)))
 
 
+@pytest.mark.slow
 def test_grid_update_reverse_mode_finite_in_float32():
     """Gravity and colliders after the division: the gradient of grid velocities w.r.t. grid mass and
     momentum stays finite in float32 with tiny stencil-edge masses."""

@@ -98,6 +98,7 @@ def _base_value(sim, name):
     return float(getattr(PARAMS, name))
 
 
+@pytest.mark.slow
 def test_rollout_yields_and_stays_finite(sim, forward, rev):
     """The setup exercises plasticity (otherwise sigma_y, eta, m would have no effect)."""
     h, frac, health = forward(PARAMS, sim.scene)
@@ -173,6 +174,7 @@ def _directional(name, jac, sim):
     return float(np.sum(jac * direction))
 
 
+@pytest.mark.slow
 def test_kappa_density_gravity_and_initial_state_gradients_match_central_differences(sim, forward_inputs):
     """d(mean height) along the bulk modulus, the density (masses rho * vol0), gravity's y component,
     a uniform initial upward velocity and a uniform upward shift of the initial positions: reverse
@@ -199,6 +201,7 @@ def test_kappa_density_gravity_and_initial_state_gradients_match_central_differe
             assert abs(a - ad) <= RTOL_MODES * abs(ad), f"{name}: forward {a} vs reverse {ad}"
 
 
+@pytest.mark.slow
 def test_checkpointed_and_plain_reverse_agree(sim, rev):
     """Per-frame rematerialization recomputes the same operations: same gradient to round-off."""
     plain = jf.observable_jacobian(sim, PARAMS, mean_height, WRT, jf.Autodiff())
@@ -207,6 +210,7 @@ def test_checkpointed_and_plain_reverse_agree(sim, rev):
         assert abs(a - b) <= 1e-10 * abs(a), f"{name}: checkpointed {a} vs plain tape {b}"
 
 
+@pytest.mark.slow
 def test_long_rollout_gradient_through_checkpoints():
     """2000 substeps (40 frames): reverse mode through per-frame checkpoints is finite and equals
     forward mode (jacfwd, no tape) to 1e-8 relative, for the material parameters and the plate motion.
@@ -239,6 +243,7 @@ def test_long_rollout_gradient_through_checkpoints():
 RTOL_FLOAT32 = 3e-4
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["fwd", "rev"])
 def test_float32_derivatives_match_float64(sim, rev, mode):
     """The same rollout in float32, from the same particles (the float64 sample rounded) and with the same
@@ -260,6 +265,7 @@ def test_float32_derivatives_match_float64(sim, rev, mode):
         assert abs(b - a) <= RTOL_FLOAT32 * abs(a), f"{name}: float32 {b} vs float64 {a}"
 
 
+@pytest.mark.slow
 def test_forward_mode_tangent_routes_agree(sim):
     """Forward mode by one jvp rollout per scalar input (tangents="map", the default, in two threads) gives
     the same per-frame Jacobian as jacfwd's batched tangents (tangents="vmap"), for scalar
@@ -295,6 +301,7 @@ def test_forward_mode_route_default_is_one_for_every_dimension(sim):
     assert make_observable_jacobian(sim3, mean_height, adjoint=jf.HandWritten()).threads == 1
 
 
+@pytest.mark.slow
 def test_simulate_is_differentiable(sim, rev):
     """jaxfoam.simulate under jax.grad (outside jit) returns the derivative of the same discrete map as
     Simulator.rollout: the time step comes from the parameters' values and is held fixed, and the

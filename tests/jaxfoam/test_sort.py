@@ -5,6 +5,7 @@ particles at the start of every frame and restores their order at its end must g
 particles, in the same slots, as one that never sorts (to round-off), and the same derivatives.
 """
 import jax
+import pytest
 import jax.numpy as jnp
 import numpy as np
 
@@ -41,6 +42,7 @@ def _shuffled_sim(sort, frames=(0.01, 0.02, 0.03)):
     return Simulator(scene, frames, PARAMS, DX, state0=s0, sort=sort)
 
 
+@pytest.mark.slow
 def test_sort_by_cell_orders_cells_and_puts_inactive_last():
     """sorted = original[perm]: cell indices of active particles are nondecreasing, inactive slots
     come after every active one, and unsort restores every slot bit for bit."""
@@ -59,6 +61,7 @@ def test_sort_by_cell_orders_cells_and_puts_inactive_last():
         assert np.array_equal(np.asarray(a), np.asarray(b))
 
 
+@pytest.mark.slow
 def test_sorted_rollout_matches_unsorted_slot_by_slot():
     """Sorting during each frame changes the result only by floating-point association (positions agree
     to 1e-11 m over 3 frames of a slumping, yielding column) and keeps particle i in slot i."""
@@ -77,6 +80,7 @@ def test_sorted_rollout_matches_unsorted_slot_by_slot():
     assert float(jnp.max(jnp.abs(f1.bbar_e - f0.bbar_e))) < 1e-9
 
 
+@pytest.mark.slow
 def test_sorted_substeps_have_same_gradient():
     """d(slot-weighted height after 40 substeps)/d(mu, sigma_y) by reverse mode is the same with the particles
     sorted by cell before the substeps and put back after them as without (relative 1e-8), on the

@@ -97,6 +97,7 @@ def test_unstable_step_raises_simulation_error(stretch):
         assert pos is not None and np.all(np.isfinite([float(v) for v in pos.group(1).split(",")])), msg
 
 
+@pytest.mark.slow
 def test_unstable_step_raises_under_grad_too():
     """`jaxfoam.simulate` differentiated (jax.grad outside jit) still checks the rollout on the host: the
     far-unstable case above raises SimulationError instead of returning a NaN gradient."""

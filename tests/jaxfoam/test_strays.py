@@ -8,6 +8,7 @@ non-finite at 0.23 s in float32). These tests check the contract of `jaxfoam.fra
 that lone point's fate. Units: SI.
 """
 import jax
+import pytest
 import jax.numpy as jnp
 import numpy as np
 
@@ -22,6 +23,7 @@ MASS = 2e-6        # kg
 V_DROP = (0.3, -1.2, 0.1)   # m/s: the landing speed of the stray that failed first, plus sliding
 
 
+@pytest.mark.slow
 def test_release_makes_weak_F_isotropic_and_keeps_the_stress():
     """Weak points: F = min(J, 1)^(1/d) I and bbar_e = I, so the Kirchhoff stress equals
     kappa/2 (min(J,1)^2 - 1) I (compression kept, stretch released) whatever F's shape was;
@@ -56,6 +58,7 @@ def test_release_makes_weak_F_isotropic_and_keeps_the_stress():
                                        rtol=1e-10, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_lone_point_dropped_on_the_floor_stays_finite_float32():
     """A lone foam point (2e-6 kg) dropped on the floor at 1.2 m/s with fracture on, float32, 0.4 s
     (1,400 substeps): every frame finite, 0 < J <= 1, F isotropic (condition number 1 to 1e-5),

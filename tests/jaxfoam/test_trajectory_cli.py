@@ -135,6 +135,7 @@ def test_non_trajectory_files_are_rejected(tmp_path):
         jaxfoam.load_trajectory(tmp_path / "other.h5")
 
 
+@pytest.mark.slow
 def test_cli_simulate_then_render_end_to_end(tmp_path, capsys):
     out = tmp_path / "run.h5"
     code = cli.main(["simulate", str(CLI_SCENE), "--out", str(out), "--dx", str(TINY_DX[2]), "--dtype", CLI_DTYPE,
@@ -250,6 +251,7 @@ FAST_COMPILE = {"xla_backend_optimization_level": 0}
 SCENE_SUBSTEPS = 3
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("path", SCENES, ids=[p.stem for p in SCENES])
 def test_example_scene_loads_and_runs(path):
     import jax
