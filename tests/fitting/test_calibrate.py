@@ -31,11 +31,9 @@ import fitting.problem
 from jaxfoam.cli import main
 from fitting import read_silhouettes, synthesize
 
-SLUMP = {
-    "kind": "drop", "dim": 2, "gravity": [0.0, -9.81], "density": 80.0, "kappa": 3000.0,
-    "domain": {"min": [-0.12, 0.0], "max": [0.12, 0.12]}, "floor": {"y": 0.0, "friction": 0.5},
-    "initial_shape": {"type": "box", "min": [-0.04, 0.0], "max": [0.04, 0.1]},
-}
+from helpers import central_difference, scene as zoo_scene
+
+SLUMP = zoo_scene("slump", initial_shape={"type": "box", "min": [-0.04, 0.0], "max": [0.04, 0.1]})
 TRUTH = {"mu": 150.0, "sigma_y": 25.0, "eta": 5.0, "m": 0.6}
 DATA_DX, FIT_DX = 0.005, 0.01
 FIT_ARGS = ["--dx", str(FIT_DX), "--fix", "mu=150,eta=5,m=0.6", "--starts", "1", "--max-iter", "8"]
@@ -463,10 +461,7 @@ def test_threaded_jacobian_columns_match_sequential_groups_and_finite_difference
     np.testing.assert_array_equal(r, np.asarray(seq[0][0]))
     np.testing.assert_array_equal(J, np.concatenate([np.asarray(c) for _, c in seq])[:3].T)
     assert not np.any(np.asarray(seq[1][1])[1])  # the padding direction's column is zero
-    h = 1e-5
-    e = np.array([0.0, 0.0, h])
-    rp, rm = (np.asarray(problem.residual_and_jacobian(z + s * e)[0]) for s in (1, -1))
-    fd = (rp - rm) / (2 * h)
+    fd = central_difference(lambda zz: problem.residual_and_jacobian(zz)[0], z, np.array([0.0, 0.0, 1.0]), h=1e-5)
     assert np.linalg.norm(fd - J[:, 2]) <= 1e-4 * np.linalg.norm(J[:, 2])
 
 

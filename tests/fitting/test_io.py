@@ -10,14 +10,9 @@ from fitting import Camera, SilhouetteFormatError, read_silhouettes, write_silho
 from fitting.io import camera_covering, glue_under_plates, plate_footprint
 from jaxfoam import load_scene
 
-SCENE = {
-    "kind": "hanging_plate", "dim": 2, "gravity": [0.0, -9.81], "density": 80.0, "kappa": 2000.0,
-    "domain": {"min": [-0.15, 0.0], "max": [0.15, 0.35]}, "floor": {"y": 0.0, "friction": 0.5},
-    "plate": {"center": [0.0, 0.30], "half_size": [0.08, 0.005],
-              "motion": {"type": "sinusoid", "axis": [1.0, 0.0], "amplitude": 0.01, "frequency": 3.0,
-                         "phase": 0.0, "ramp_time": 0.3}, "sticky": True},
-    "initial_shape": {"type": "first_mask"},
-}
+from helpers import scene as zoo_scene
+
+SCENE = zoo_scene("hanging_plate", initial_shape={"type": "first_mask"})
 T, H, W = 3, 35, 30
 CAMERA = Camera(pixel_size=0.01, origin=(-0.15, 0.0))
 

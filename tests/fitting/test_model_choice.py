@@ -18,6 +18,8 @@ from jaxfoam._scene import init_state
 from jaxfoam import stable_dt
 from fitting import synthesize
 
+from helpers import scene as zoo_scene
+
 MODEL_CHOICE = Path(__file__).resolve().parents[2] / "experiments" / "MODEL_CHOICE.md"
 
 
@@ -52,9 +54,7 @@ def test_fitter_uses_the_constants(tmp_path):
     ap = calibrate.add_fit_parser(sub)
     assert ap.get_default("dtype") == calibrate.FIT_DTYPE
 
-    scene = {"kind": "drop", "dim": 2, "gravity": [0.0, -9.81], "density": 80.0, "kappa": 3000.0,
-             "domain": {"min": [-0.12, 0.0], "max": [0.12, 0.12]}, "floor": {"y": 0.0, "friction": 0.5},
-             "initial_shape": {"type": "box", "min": [-0.04, 0.0], "max": [0.04, 0.06]}}
+    scene = zoo_scene("slump")
     data = synthesize(scene, {"mu": 150.0, "sigma_y": 25.0, "eta": 5.0, "m": 0.6}, dx=0.02, frames=2,
                       duration=0.01, noise=0.0, seed=0)
     problem = calibrate.build_problem(data, calibrate.FitSettings(starts=1))

@@ -14,6 +14,8 @@ import pytest
 
 from jaxfoam import Params, load_scene, simulate
 
+from helpers import scene as zoo_scene
+
 SCENE = Path(__file__).resolve().parents[2] / "experiments" / "scenes" / "hanging_plate_2d.json"
 # Below the yield threshold of the 6.5 cm hanging slab (rho g L = 51 Pa > sigma_y): it tears off and
 # tears off between t = 0.3 s and 0.45 s (measured at dx = 1 cm, 7 mm and 5 mm), so t = 0.5 s is
@@ -100,14 +102,7 @@ def test_first_mask_start_grips_the_plate_like_the_exact_shape(monkeypatch):
 
 # The data format's example scene (shared/specs/silhouettes.md): a 1 cm board; here a box of foam that
 # ends exactly at the board's bottom face instead of entering it.
-TOUCHING = {
-    "kind": "hanging_plate", "dim": 2, "gravity": [0.0, -9.81], "density": 80.0, "kappa": 2000.0,
-    "domain": {"min": [-0.15, 0.0], "max": [0.15, 0.35]}, "floor": {"y": 0.0, "friction": 0.5},
-    "plate": {"center": [0.0, 0.30], "half_size": [0.08, 0.005],
-              "motion": {"type": "sinusoid", "axis": [1.0, 0.0], "amplitude": 0.01, "frequency": 3.0,
-                         "phase": 0.0, "ramp_time": 0.3}, "sticky": True},
-    "initial_shape": {"type": "box", "min": [-0.05, 0.23], "max": [0.05, 0.295]},
-}
+TOUCHING = zoo_scene("hanging_plate", initial_shape={"type": "box", "min": [-0.05, 0.23], "max": [0.05, 0.295]})
 
 
 @pytest.mark.slow

@@ -9,6 +9,8 @@ import numpy as np
 import jaxfoam as jf
 from jaxfoam._boundary import _clamp, _neg_part, _pos_part
 
+from helpers import scene as zoo_scene
+
 VALUES = jnp.asarray([-np.inf, -3.5, -1e-300, -0.0, 0.0, 1e-300, 2.25, np.inf, np.nan])
 
 
@@ -48,12 +50,7 @@ def test_walls_and_floor_keep_nan_velocities_visible():
 
 
 def _box_scene(dim, sticky, floor_y):
-    lo, hi = [0.0] * dim, [0.3] * dim
-    return jf.load_scene({"kind": "drop", "dim": dim, "density": 80.0, "kappa": 2000.0,
-                          "gravity": [0.0, -9.81] + [0.0] * (dim - 2),
-                          "domain": {"min": lo, "max": hi},
-                          "floor": {"y": floor_y, "friction": "sticky" if sticky else 0.7},
-                          "initial_shape": {"type": "box", "min": [0.1] * dim, "max": [0.2] * dim}})
+    return jf.load_scene(zoo_scene("drop", dim, floor={"y": floor_y, "friction": "sticky" if sticky else 0.7}))
 
 
 @pytest.mark.slow

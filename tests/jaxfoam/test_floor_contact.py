@@ -18,6 +18,8 @@ import pytest
 import jaxfoam as jf
 from jaxfoam._boundary import particle_floor
 
+from helpers import central_difference, scene as zoo_scene
+
 G = 9.81
 ELASTIC = jf.Params(mu=2000.0, sigma_y=1e4, eta=1.0, m=1.0, kappa=3000.0, rho=80.0)  # never yields here
 FOAM = jf.Params(mu=233.3, sigma_y=49.24, eta=28.31, m=0.3931, kappa=3000.0, rho=80.0)
@@ -101,7 +103,7 @@ def test_particle_contact_rollout_gradient_matches_central_differences():
             sc = dataclasses.replace(scene, floor_friction=scene.floor_friction + delta)
             return float(mean_x(sim.rollout(ELASTIC, scene=sc)[1]))
 
-        fd = (at(h) - at(-h)) / (2 * h)
+        fd = central_difference(at, 0.0, h=h)
         got = float(rev.jacobian[name])
         assert abs(got - fd) <= 1e-4 * abs(fd), (name, got, fd)
     assert float(rev.jacobian["floor_friction"]) < 0  # more friction, shorter slide
@@ -124,11 +126,7 @@ def test_particle_contact_grid_rule_acts_only_on_touched_floor_nodes(dim, fricti
     `touch` is required."""
     rng = np.random.default_rng(5)
     dx = 0.02
-    z = [0.0] * (dim - 2)
-    scene = jf.load_scene({"kind": "drop", "dim": dim, "density": 80.0, "kappa": 2000.0,
-                           "gravity": [0.0, -9.81] + z, "domain": {"min": [0.0] * dim, "max": [0.3] * dim},
-                           "floor": {"y": 0.0, "friction": friction, "contact": "particle"},
-                           "initial_shape": {"type": "box", "min": [0.1] * dim, "max": [0.2] * dim}})
+    scene = jf.load_scene(zoo_scene("drop", dim, floor={"y": 0.0, "friction": friction, "contact": "particle"}))
     grid = jf.make_grid(scene, dx)
     node_x = np.asarray(grid.node_positions(jnp.float64))
     v = jnp.asarray(rng.normal(size=(grid.num_nodes, dim)))

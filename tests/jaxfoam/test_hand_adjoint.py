@@ -21,6 +21,8 @@ from jaxfoam._xla_cpu import XLA_CPU
 from jaxfoam._xla_cpu.transfers import _g2p_impl, _g2p_transfer, _p2g_impl, _p2g_scatter, _p2g_transfer
 from jaxfoam.adjoint import HandWritten, checkpoint_blocks
 
+from helpers import central_difference
+
 # The tuning the transfers run with (its buffer points on, as on the CPU backend).
 TUNING = XLA_CPU
 
@@ -124,12 +126,9 @@ def test_g2p_adjoint_equals_autodiff_transpose(d):
         assert _rel(a, b) <= RTOL_AD, f"{name}: relative difference {_rel(a, b):.2e}"
 
 
-def _central(f, args, k, direction, h):
-    plus = list(args)
-    minus = list(args)
-    plus[k] = args[k] + h * direction
-    minus[k] = args[k] - h * direction
-    return (f(*plus) - f(*minus)) / (2 * h)
+def _of_arg(f, args, k):
+    """f as a function of its k-th argument, the others held at args."""
+    return lambda a: f(*args[:k], a, *args[k + 1:])
 
 
 @pytest.mark.slow
@@ -146,7 +145,7 @@ def test_transfer_adjoints_match_central_differences(d):
     for k, name in enumerate(("x", "mv", "A", "mass")):
         e = jnp.asarray(rng.normal(size=args[k].shape))
         h = 1e-6 * (grid.dx if k == 0 else 1.0)
-        fd = float(_central(p2g_scalar, args, k, e, h))
+        fd = float(central_difference(_of_arg(p2g_scalar, args, k), args[k], e, h=h))
         ad = float(jnp.vdot(grads[k], e))
         assert abs(fd - ad) <= RTOL_FD * abs(ad), f"p2g {name}: FD {fd} vs hand {ad}"
 
@@ -158,11 +157,12 @@ def test_transfer_adjoints_match_central_differences(d):
         v, C = _g2p_transfer(grid, TUNING, x_, g_, idx0, T0)
         return jnp.vdot(cv, v) + sum(jnp.vdot(cC[:, i, j], C[i][j]) for i in range(d) for j in range(d))
 
-    gx, gg = jax.grad(g2p_scalar, argnums=(0, 1))(x, grid_v)
+    g_args = (x, grid_v)
+    gx, gg = jax.grad(g2p_scalar, argnums=(0, 1))(*g_args)
     for k, (name, g) in enumerate((("x", gx), ("grid_v", gg))):
         e = jnp.asarray(rng.normal(size=g.shape))
         h = 1e-6 * (grid.dx if k == 0 else 1.0)
-        fd = float(_central(g2p_scalar, (x, grid_v), k, e, h))
+        fd = float(central_difference(_of_arg(g2p_scalar, g_args, k), g_args[k], e, h=h))
         ad = float(jnp.vdot(g, e))
         assert abs(fd - ad) <= RTOL_FD * abs(ad), f"g2p {name}: FD {fd} vs hand {ad}"
 

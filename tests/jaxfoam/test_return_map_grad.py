@@ -23,6 +23,8 @@ import pytest
 import jaxfoam as jf
 from jaxfoam._mpm import safe_div
 
+from helpers import central_difference
+
 SQRT_2_3 = math.sqrt(2.0 / 3.0)
 MU = 200.0        # Pa
 SIGMA_Y = 30.0    # Pa
@@ -104,13 +106,9 @@ _s_new_jvp = jax.jit(lambda th, tan, f, b: jax.jvp(lambda *t: _s_new(t, f, b), t
 _bbar_new_jvp = jax.jit(lambda b, v, f, th: jax.jvp(lambda bb: _bbar_new(bb, f, th), (b,), (v,))[1])
 
 
-def _fd5(fun, x0, h):
-    """Central 5-point derivative of fun along a step h (array or scalar)."""
-    return (-fun(x0 + 2 * h) + 8 * fun(x0 + h) - 8 * fun(x0 - h) + fun(x0 - 2 * h)) / (12 * h)
-
-
 def _fd5_forward(fun, x0, h):
-    """One-sided 5-point derivative (for eta = 0, where eta < 0 is outside the model)."""
+    """One-sided 5-point derivative (for eta = 0, where eta < 0 is outside the model: only here, so
+    it stays local; the central ones use helpers.central_difference)."""
     return (-25 * fun(x0) + 48 * fun(x0 + h) - 36 * fun(x0 + 2 * h) + 16 * fun(x0 + 3 * h)
             - 3 * fun(x0 + 4 * h)) / (12 * h)
 
@@ -160,9 +158,9 @@ def test_ds_dparams_matches_finite_differences(grid_cases):
 
         if name == "eta":
             # central where the stencil stays at eta >= 0, else one-sided (eta < 0 is outside the model)
-            fd = np.where(x0 - 2 * h > 0, _fd5(fun, x0, h), _fd5_forward(fun, x0, h))
+            fd = np.where(x0 - 2 * h > 0, central_difference(fun, x0, h=h, order=4), _fd5_forward(fun, x0, h))
         else:
-            fd = _fd5(fun, x0, h)
+            fd = central_difference(fun, x0, h=h, order=4)
         noise = FD_NOISE * EPS * np.abs(s0) / h
         err = np.abs(ad - fd)
         bad = err > RTOL * np.abs(fd) + noise
@@ -186,7 +184,7 @@ def test_dbbar_dbbar_n_matches_finite_differences(grid_cases):
     # |d s_pre / dh| <= mu |fbar|^2 |V|: keep 2 h below 2% of the distance to yield.
     h = np.minimum(1e-4, 0.02 * excess / (MU * fnorm ** 2 * float(jnp.linalg.norm(V[0]))))[:, None, None]
     fun = lambda hh: np.asarray(_bbar_new_jit(b + jnp.asarray(hh) * V, f, theta))
-    fd = (-fun(2 * h) + 8 * fun(h) - 8 * fun(-h) + fun(-2 * h)) / (12 * h)
+    fd = central_difference(fun, 0.0, h=h, order=4)
     scale = np.max(np.abs(fd), axis=(1, 2))
     err = np.max(np.abs(ad - fd), axis=(1, 2))
     noise = FD_NOISE * EPS * np.max(np.abs(fun(0.0 * h)), axis=(1, 2)) / h[:, 0, 0]

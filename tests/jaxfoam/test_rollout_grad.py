@@ -26,6 +26,8 @@ import pytest
 
 import jaxfoam as jf
 
+from helpers import central_difference
+
 SCENE = {
     "kind": "hanging_plate", "dim": 2, "gravity": [0.0, -9.81], "density": 80.0, "kappa": 2000.0,
     "domain": {"min": [-0.06, 0.0], "max": [0.06, 0.12]}, "floor": {"y": 0.0, "friction": 0.5},
@@ -115,9 +117,7 @@ def test_gradient_matches_central_differences(sim, rev, forward, name):
     x0 = _base_value(sim, name)
 
     def central(h):
-        hi = forward(*_perturbed(sim, name, x0 + h))[0]
-        lo = forward(*_perturbed(sim, name, x0 - h))[0]
-        return float(hi - lo) / (2.0 * h)
+        return float(central_difference(lambda x: forward(*_perturbed(sim, name, x))[0], x0, h=h))
 
     h = FD_REL_STEP * abs(x0)
     fd, fd_half = central(h), central(0.5 * h)
@@ -187,7 +187,7 @@ def test_kappa_density_gravity_and_initial_state_gradients_match_central_differe
         _, step, change = OTHER_DIRECTIONS[name]
 
         def central(h):
-            return float(forward_inputs(*_along(sim, name, h)) - forward_inputs(*_along(sim, name, -h))) / (2 * h)
+            return float(central_difference(lambda t: forward_inputs(*_along(sim, name, t)), 0.0, h=h))
 
         fd, fd_half = central(step), central(0.5 * step)
         ad = _directional(name, rev.jacobian[name], sim)

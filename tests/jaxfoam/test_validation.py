@@ -11,20 +11,11 @@ import pytest
 
 from jaxfoam import Params, SceneError, Simulator, load_scene, simulate
 
-from helpers import edited
+from helpers import edited, scene as zoo_scene
 
 GOOD = dict(mu=300.0, kappa=2000.0, sigma_y=20.0, eta=5.0, m=0.5, rho=80.0)  # Pa, Pa, Pa, Pa s^m, -, kg/m^3
 
-SCENE = {
-    "kind": "hanging_plate", "dim": 2, "gravity": [0.0, -9.81], "density": 80.0, "kappa": 2000.0,
-    "domain": {"min": [-0.15, 0.0], "max": [0.15, 0.35]},
-    "floor": {"y": 0.0, "friction": 0.5},
-    "plate": {"center": [0.0, 0.30], "half_size": [0.08, 0.005],
-              "motion": {"type": "sinusoid", "axis": [1.0, 0.0], "amplitude": 0.01, "frequency": 3.0,
-                         "phase": 0.0, "ramp_time": 0.3},
-              "sticky": True},
-    "initial_shape": {"type": "box", "min": [-0.05, 0.2], "max": [0.05, 0.295]},
-}
+SCENE = zoo_scene("hanging_plate")
 
 
 # ------------------------------------------------------------------------------------------------
