@@ -112,6 +112,7 @@ def resume_matches_reference(path, log, tmp_path, ref) -> dict:
     return fit
 
 
+@pytest.mark.slow
 def test_resumed_fit_equals_uninterrupted_fit(slump, tmp_path):
     """A fit killed after iteration 2 and continued with `jaxfoam fit --resume` ends with the same
     parameters and loss history as the uninterrupted fit (the log restores the optimizer state exactly)."""
@@ -132,6 +133,7 @@ def test_resumed_fit_equals_uninterrupted_fit(slump, tmp_path):
                                                       starts=1, max_iter=8), log=log, resume=True)
 
 
+@pytest.mark.slow
 def test_fit_stopped_by_its_time_budget_reports_its_start_and_resumes_to_the_full_fit(slump, tmp_path):
     """A 1 us budget: the first evaluation (a rollout and its Jacobian) spends it, so the fit stops at
     its starting point (iteration 0, reason max_time), reports that point with a note saying so, and
@@ -233,6 +235,7 @@ def test_first_start_from_given_values_or_a_fit_result(tmp_path):
         FitSettings(initial={"kappa": 3000.0}).validate()
 
 
+@pytest.mark.slow
 def test_fit_continued_from_its_own_result_stays_there(slump, tmp_path):
     """Coarse-to-fine contract: `jaxfoam fit --start FIT.json` starts at that fit's parameters, so a fit
     started at its own optimum (same data and grid) reproduces it: sigma_y within 1e-3 relative, no higher
@@ -310,6 +313,7 @@ def test_discretization_check_predicts_the_refit_on_the_finer_grid(slump, monkey
         assert e[0] == pytest.approx(expect, rel=1e-12) and (sh[0] == 0.5 if fake == 0.5 else np.isnan(sh[0]))
 
 
+@pytest.mark.slow
 def test_fit_with_dx_refit_reports_the_measured_move(slump):
     """`dx_refit` through the fit: fit.json's dx_check records the refit (its iterations, stop reason,
     losses and move), the shift used is the largest of the three moves, and the numerical error follows it."""
@@ -549,6 +553,7 @@ def test_a_dropped_frame_keeps_the_time_step_and_the_other_frames_residuals(slum
     np.testing.assert_array_equal(xg, xf[[0, 1, 3, 4]])
 
 
+@pytest.mark.slow
 def test_a_stopped_fit_says_how_to_resume(slump, tmp_path, capsys, monkeypatch):
     """SIGTERM (as `timeout` or a scheduler sends it) during `jaxfoam fit` ends the command with exit
     status 143 and a message naming the fit log and --resume, and restores the previous SIGTERM
@@ -606,6 +611,7 @@ def test_time_window_fits_only_its_frames_and_stops_the_rollouts_there(slump):
         parse_window("0.8")
 
 
+@pytest.mark.slow
 def test_uneven_frames_note_names_the_frames_the_grid_resolves_worst(slump):
     """The discretization check's per-frame residual change between dx and dx / sqrt 2 (fit.json
     settings.dx_check.frame_change) becomes a note when some frames change more than

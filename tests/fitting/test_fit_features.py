@@ -151,6 +151,7 @@ def test_loss_gradient_with_resampling_and_fracture_matches_central_differences(
     np.testing.assert_allclose(grad, fd, rtol=GRAD_RTOL, atol=0.0)
 
 
+@pytest.mark.slow
 def test_tiny_fit_with_resampling_and_fracture_runs_end_to_end(data, monkeypatch):
     """A fit with both on: finite fitted parameters, a loss no higher than at the start, the configs as
     the rollouts used them in the settings. (The fit reuses the gradient test's compiled Jacobian; its

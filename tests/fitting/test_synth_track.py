@@ -65,6 +65,7 @@ def test_synth_file_round_trips_with_truth_and_gaps(synth_clean):
     assert d.camera == cam and d.image_shape == shape == (60, 48)
 
 
+@pytest.mark.slow
 def test_synth_hides_the_plate_with_zero_weight(synth_clean):
     """Plate pixels (its footprint at each frame's time, Plate.position(t)) have weight 0 and mask 0;
     every other pixel weight 1."""
@@ -78,6 +79,7 @@ def test_synth_hides_the_plate_with_zero_weight(synth_clean):
         assert np.all(d.weights[t][~fp] == 1.0)
 
 
+@pytest.mark.slow
 def test_synth_first_frame_is_the_initial_shape(synth_clean):
     """Frame 0 without noise is the sampled ellipse (minus the plate): IoU > 0.9 at dx = 2 cm, and the
     cream hangs below the plate in every frame."""
@@ -93,6 +95,7 @@ def test_synth_first_frame_is_the_initial_shape(synth_clean):
         assert ys.max() < 0.25 and ys.min() > 0.1
 
 
+@pytest.mark.slow
 def test_synth_noise_flips_boundary_pixels_only(synth_clean, tmp_path):
     """With noise p, pixels flip only on either side of the clean boundary, about a fraction p of
     them; the frames dropped do not depend on the noise; --first-mask records the mask as the shape."""

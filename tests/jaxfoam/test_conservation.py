@@ -96,6 +96,7 @@ def _totals(state, params):
                 wall_gap=jnp.min(jnp.where(state.active[:, None], jnp.minimum(state.x, 0.2 - state.x), 0.1)))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dim", [2, 3])
 def test_rollout_conserves_mass_and_momentum(dim):
     """With gravity off, no floor, no plates and the material 0.06 m from the walls, a stirred

@@ -98,6 +98,7 @@ def test_fracture_releases_tension(runs):
     assert np.abs(frac).max() < 0.03 * plain.max(), (np.abs(frac).max(), plain.max())
 
 
+@pytest.mark.slow
 def test_separated_piece_falls_freely(runs):
     """Free fall: with fracture the bottom block's centre of mass accelerates at -g within 2%;
     in plain MPM the stretched chain holds it back (acceleration above -g/2)."""

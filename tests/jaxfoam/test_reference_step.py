@@ -189,6 +189,7 @@ def test_step_equals_the_reference_step_under_every_tuning(case, dim, dtype, var
                                atol=1e-9 * float(jnp.max(ref.gamma_dot)) if f64 else 1e-3)
 
 
+@pytest.mark.slow
 def test_reference_step_detects_a_wrong_step():
     """The oracle would catch a real bug: a 1% error in the yield stress moves the result well past
     the tolerances above."""

@@ -252,6 +252,7 @@ def _finite(tree):
     return all(bool(jnp.all(jnp.isfinite(a))) for a in jax.tree_util.tree_leaves(tree))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("m", M_VALUES)
 @pytest.mark.parametrize("eta", (0.0, 5.0))
 def test_finite_exactly_at_yield(m, eta):

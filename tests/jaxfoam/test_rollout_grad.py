@@ -110,6 +110,7 @@ def test_rollout_yields_and_stays_finite(sim, forward, rev):
     assert all(bool(jnp.all(jnp.isfinite(j))) for j in rev.jacobian.values())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", WRT)
 def test_gradient_matches_central_differences(sim, rev, forward, name):
     """d(mean height)/d(input) by reverse mode equals the central difference to 1e-4 relative
@@ -282,6 +283,7 @@ def test_forward_mode_tangent_routes_agree(sim):
     assert np.any(np.asarray(a.jacobian["gravity"])[:, 1] != 0.0)  # the vertical column is non-trivial
 
 
+@pytest.mark.slow
 def test_forward_mode_route_default_is_one_for_every_dimension(sim):
     """One Jacobian default (jaxfoam.adjoint.DEFAULT_JACOBIAN) for 2D and 3D, the fitter's too: one jvp
     rollout per input, in the CPU tuning's two threads; a reverse-mode adjoint runs in one program."""
@@ -329,6 +331,7 @@ def test_simulate_is_differentiable(sim, rev):
         jax.jit(h)(PARAMS)
 
 
+@pytest.mark.slow
 def test_wrt_validation(sim):
     with pytest.raises(ValueError, match="plate1"):
         jf.observable_jacobian(sim, PARAMS, mean_height, ("plate1.amplitude",))

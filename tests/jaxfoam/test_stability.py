@@ -43,6 +43,7 @@ def _record(state, params):
                 J_min=jnp.min(J), J_max=jnp.max(J))
 
 
+@pytest.mark.slow
 def test_stiff_fast_impact_at_cfl_bound_stays_finite():
     """At the CFL bound the stiff, fast blob hits the floor and spreads: everything stays finite and
     uninverted, the total energy (kinetic + gravitational + elastic) never grows (an unstable explicit
@@ -70,6 +71,7 @@ def test_stiff_fast_impact_at_cfl_bound_stays_finite():
     assert 0.7 < float(np.min(rec["J_min"])) and float(np.max(rec["J_max"])) < 1.3
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("stretch", [4.0, 25.0])
 def test_unstable_step_raises_simulation_error(stretch):
     """The same scene, frame count and substep count as the stable run (the compiled rollout is
