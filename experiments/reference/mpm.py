@@ -108,13 +108,6 @@ def grid_update(gm, gp, gv, dt, gravity, origin, dx, shape, periodic, wall_lo, w
             rem //= shape[k]
         for k in range(d):
             vi[k] = gp[i, k] / gm[i] + dt * gravity[k]
-        for k in range(d):
-            if periodic and k == 0:
-                continue
-            if xi[k] <= wall_lo[k] and vi[k] < 0.0:
-                vi[k] = 0.0
-            if xi[k] >= wall_hi[k] and vi[k] > 0.0:
-                vi[k] = 0.0
         if floor_mode != FLOOR_NONE and xi[1] <= floor_y:
             if floor_mode == FLOOR_STICKY:
                 for k in range(d):
@@ -129,6 +122,15 @@ def grid_update(gm, gp, gv, dt, gravity, origin, dx, shape, periodic, wall_lo, w
                 keep = max(0.0, 1.0 - friction * vn / vt) if vt > 0.0 else 0.0
                 for k in range(d):
                     vi[k] *= keep
+        # Walls after the floor: a wall on the floor's plane must not take the approaching velocity
+        # that the floor's friction is proportional to.
+        for k in range(d):
+            if periodic and k == 0:
+                continue
+            if xi[k] <= wall_lo[k] and vi[k] < 0.0:
+                vi[k] = 0.0
+            if xi[k] >= wall_hi[k] and vi[k] > 0.0:
+                vi[k] = 0.0
         for q in range(plate_lo.shape[0]):
             inside = True
             for k in range(d):

@@ -89,6 +89,11 @@ def _erode(occ, radius_cells, out):
 
 def render_mask(x, spacing, camera):
     """Binary mask (H, W) uint8, row 0 at the top, of particles at x (N, d) m with mean spacing `spacing` m."""
+    return (coverage(x, spacing, camera) >= 0.5).astype(np.uint8)
+
+
+def coverage(x, spacing, camera):
+    """Fraction (H, W) of each pixel covered by the material (row 0 at the top); see the module docstring."""
     H, W = camera.shape
     ss = int(min(MAX_SUPERSAMPLE, max(1, math.ceil(camera.pixel_size * SUB_PER_SPACING / spacing))))
     h = camera.pixel_size / ss
@@ -97,8 +102,7 @@ def render_mask(x, spacing, camera):
                  camera.origin[1], h, occ)
     closed = np.empty_like(occ)
     _erode(occ, ERODE_SPACINGS * spacing / h, closed)
-    cover = closed.reshape(H, ss, W, ss).mean(axis=(1, 3))
-    return (cover >= 0.5).astype(np.uint8)[::-1]
+    return closed.reshape(H, ss, W, ss).mean(axis=(1, 3))[::-1]
 
 
 def plate_pixels(camera, boxes):

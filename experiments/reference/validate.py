@@ -15,7 +15,12 @@
    height h_f / H against Pashias et al. (1996), h_f / H = 2 tau' (1 - ln 2 tau'), tau' = tau_y / (rho g H),
    tau_y = sigma_y / sqrt(3). Tolerance 0.05 for tau' >= 0.3 (the 1D analysis is meant for slumps that stay
    columns; tau' = 0.2 is reported without a tolerance).
-4. Renderer: the first-frame mask of each 2D scene against the exact shape's pixel area, tolerance 1%.
+4. Renderer: the covered area (sum of pixel coverages before the 1/2 threshold) of each 2D scene's first
+   frame against the exact shape's area, tolerance 1% (the thresholded mask's area also depends on where
+   the shape's edges fall within pixels).
+5. Coulomb floor: a stiff elastic block (4 x 2 cm) sliding at v0 = 1 m/s on a floor of friction 0.5, with
+   the domain's bottom wall on the floor's plane (as in the scenes), at three offsets of the node lattice;
+   it stops after v0^2 / (2 mu_f g). Tolerance 3%.
 """
 from __future__ import annotations
 
@@ -29,9 +34,14 @@ import numpy as np
 from .material import drive_simple_shear
 from .mpm import Grid, Particles, Simulation
 from .scene import Boundaries, Plate, RefScene, particle_spacing, sample
-from .silhouettes import Camera, render_mask
+from .silhouettes import Camera, coverage
 
 OUT = pathlib.Path(__file__).resolve().parent / "validation.md"
+# Written under table 2b (measured 2026 on this host; the numbers in it are the table's as last run).
+NOTE_SHEAR = ("The MPM layer's measured rate is 8-32% below V/H (the sticky plate nodes do not pin the material's "
+              "edge to the plate speed) and its stress is 2.6-4.3% below the flow curve at the measured rate, "
+              "growing with the rate; the same return map alone is within 2.5e-4 (2a), so the gap is the MPM's (not"
+              " yet explained; jaxfoam's sheared box, experiments/rheometer.md, is 1.2-6.3% off).")
 RHO, G = 80.0, 9.81
 
 
@@ -154,7 +164,7 @@ def render_area_errors(res_ratio=4.0):
         dx = fit_dx(scene) / res_ratio
         parts = sample(scene, dx, PPC[2], seed=1)
         cam = Camera.covering(scene.lo, scene.hi, PIXEL_SIZE)
-        px = int(render_mask(parts.x, particle_spacing(dx, PPC[2], 2), cam).sum())
+        px = float(coverage(parts.x, particle_spacing(dx, PPC[2], 2), cam).sum())
         sh = scene.spec["initial_shape"]
         if sh["type"] == "box":
             exact = float(np.prod(np.asarray(sh["max"]) - np.asarray(sh["min"])))
@@ -163,6 +173,22 @@ def render_area_errors(res_ratio=4.0):
         exact /= PIXEL_SIZE ** 2
         out[name] = (px, exact, px / exact - 1.0)
     return out
+
+
+# ---------------------------------------------------------------- 5. sliding block
+def sliding_distance(shift, dx=0.0025, friction=0.5, v0=1.0):
+    """Distance (m) a stiff block sliding at v0 (m/s) travels on a Coulomb floor, node lattice offset `shift` cells."""
+    spec = {"kind": "drop", "dim": 2, "gravity": [0.0, -G], "density": RHO, "kappa": 3000.0,
+            "domain": {"min": [-0.1, 0.0], "max": [0.2, 0.05]}, "floor": {"y": 0.0, "friction": friction},
+            "initial_shape": {"type": "box", "min": [-0.08, 0.0], "max": [-0.04, 0.02]}, "initial_velocity": [v0, 0.0]}
+    scene = RefScene(spec)
+    parts = sample(scene, dx, 4, seed=0)
+    mat = dict(mu=1000.0, kappa=3000.0, sigma_y=1e6, eta=0.0, m=1.0, rho=RHO)
+    sim = Simulation(parts, Grid.covering(scene.lo, scene.hi, dx, shift=[0.3, shift]), mat, scene.boundaries,
+                     scene.gravity)
+    x0 = np.average(parts.x[:, 0], weights=parts.mass)
+    sim.advance_to(1.5 * v0 / (friction * G))
+    return float(np.average(parts.x[:, 0], weights=parts.mass) - x0)
 
 
 def _row(cells):
@@ -215,6 +241,7 @@ def main(quick=False):
                            f"{time.perf_counter() - t0:.0f}", "3%", verdict(abs(err) < 0.03)]))
         print(lines[-1], flush=True)
 
+    lines += ["", NOTE_SHEAR]
     res = 16 if quick else 24
     lines += ["", f"## 3. Slump, frictionless floor, H/dx = {res}, 1.5 s", "",
               _row(["tau'", "sigma_y Pa", "h_f/H", "Pashias", "difference", "final/peak KE", "wall s", "tolerance",
@@ -229,10 +256,18 @@ def main(quick=False):
                            "0.05" if judged else "-", verdict(abs(h - ref) <= 0.05) if judged else "-"]))
         print(lines[-1], flush=True)
 
-    lines += ["", "## 4. Renderer: first-frame foam pixels against the exact shape area (2.5 mm pixels, 4x grid)", "",
-              _row(["scene", "foam pixels", "exact area px", "rel. error", "tolerance", "result"]), _row(["---"] * 6)]
+    lines += ["", "## 4. Renderer: first-frame covered area against the exact shape area (2.5 mm pixels, 4x grid)", "",
+              _row(["scene", "covered area px", "exact area px", "rel. error", "tolerance", "result"]), _row(["---"] * 6)]
     for name, (px, exact, err) in render_area_errors().items():
-        lines.append(_row([name, px, f"{exact:.1f}", f"{err:+.2%}", "1%", verdict(abs(err) < 0.01)]))
+        lines.append(_row([name, f"{px:.1f}", f"{exact:.1f}", f"{err:+.2%}", "1%", verdict(abs(err) < 0.01)]))
+    exact = 1.0 / (2 * 0.5 * G)
+    lines += ["", "## 5. Coulomb floor: sliding distance of a stiff block (v0 = 1 m/s, friction 0.5, dx 2.5 mm)", "",
+              _row(["lattice offset (cells)", "distance m", "exact m", "rel. error", "tolerance", "result"]),
+              _row(["---"] * 6)]
+    for shift in (0.0, 0.5, 0.79):
+        dist = sliding_distance(shift)
+        err = dist / exact - 1.0
+        lines.append(_row([shift, f"{dist:.4f}", f"{exact:.4f}", f"{err:+.2%}", "3%", verdict(abs(err) < 0.03)]))
     lines += ["", f"All checks {'pass' if ok_all else 'DO NOT all pass'}; total wall time "
               f"{time.perf_counter() - t_all:.0f} s.", ""]
     text = "\n".join(lines)
