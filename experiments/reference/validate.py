@@ -37,7 +37,7 @@ from .scene import Boundaries, Plate, RefScene, particle_spacing, sample
 from .silhouettes import Camera, coverage
 
 OUT = pathlib.Path(__file__).resolve().parent / "validation.md"
-# Written under table 2b (measured 2026 on this host; the numbers in it are the table's as last run).
+# Written under table 2b: a static note whose numbers are those of the last full run on the 2-core host.
 NOTE_SHEAR = ("The MPM layer's measured rate is 8-32% below V/H (the sticky plate nodes do not pin the material's "
               "edge to the plate speed) and its stress is 2.6-4.3% below the flow curve at the measured rate, "
               "growing with the rate; the same return map alone is within 2.5e-4 (2a), so the gap is the MPM's (not"
