@@ -1,19 +1,4 @@
 """Deprecated alias of `fitting` (moved with the calibration package); removed in the next release."""
-import importlib
-import warnings
+from ._deprecated import alias
 
-warnings.warn("jaxfoam.calibrate is deprecated: import fitting instead (the same names)", DeprecationWarning, stacklevel=2)
-
-_MODULES = ('fitting', 'fitting.settings', 'fitting.result', 'fitting.problem', 'fitting.check', 'fitting.driver', 'fitting.plots', 'fitting.cli')
-
-
-def __getattr__(name):
-    for module in _MODULES:
-        module = importlib.import_module(module)
-        if hasattr(module, name):
-            return getattr(module, name)
-    raise AttributeError(f"module 'jaxfoam.calibrate' has no attribute {name!r}")
-
-
-def __dir__():
-    return sorted({n for m in _MODULES for n in dir(importlib.import_module(m)) if not n.startswith("__")})
+__getattr__, __dir__ = alias('calibrate', 'fitting', ('fitting', 'fitting.settings', 'fitting.result', 'fitting.problem', 'fitting.check', 'fitting.driver', 'fitting.plots', 'fitting.cli'))
