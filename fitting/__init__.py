@@ -46,13 +46,13 @@ from .plots import plot_loss as plot_loss, plot_overlay as plot_overlay
 from .problem import (CalibrationProblem as CalibrationProblem, build_problem as build_problem,
                       fit_transform as fit_transform, fitted_occupancy as fitted_occupancy)
 from .result import FitResult as FitResult
-from .settings import (DEFAULT_BOUNDS as DEFAULT_BOUNDS, CalibrationError as CalibrationError,
-                       FitSettings as FitSettings)
+from .settings import (DEFAULT_BOUNDS as DEFAULT_BOUNDS, NUISANCE_FIELDS as NUISANCE_FIELDS,
+                       CalibrationError as CalibrationError, FitSettings as FitSettings)
 from .synth import synthesize as synthesize
 from .track import track_video as track_video
 
 __all__ = [
-    "Camera", "CalibrationError", "CalibrationProblem", "DEFAULT_BOUNDS", "FIT_FIELDS", "FitResult", "FitSettings",
+    "Camera", "CalibrationError", "CalibrationProblem", "DEFAULT_BOUNDS", "FIT_FIELDS", "FitResult", "FitSettings", "NUISANCE_FIELDS",
     "SilhouetteFormatError", "Silhouettes", "build_problem", "calibrate", "combine_intervals", "correlation_area",
     "default_log_path", "discretization_error", "fit_transform", "fit_uncertainty", "fitted_occupancy", "io",
     "judge_reported_intervals", "make_starts", "optim", "plot_loss", "plot_overlay", "read_silhouettes",

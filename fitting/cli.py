@@ -25,7 +25,7 @@ from jaxfoam.resample import ResampleConfig
 from . import optim
 from .io import read_silhouettes
 from .settings import (CalibrationError, DEFAULT_BOUNDS, DEFAULT_DX_REFIT, DEFAULT_MAX_ITER, DEFAULT_STARTS, FIT_CELLS,
-                       FIT_DTYPE, FIT_PPC, FitSettings, KNOWN_INPUTS, OPTIMIZERS)
+                       FIT_DTYPE, FIT_PPC, FitSettings, KNOWN_INPUTS, NUISANCE_FIELDS, OPTIMIZERS)
 from .problem import build_problem
 from .driver import calibrate, default_log_path
 from .plots import plot_loss, plot_overlay
@@ -97,17 +97,29 @@ def parse_window(text: str | None) -> tuple | None:
     return (lo, hi)
 
 
-def parse_start(text: str | None, fixed: Mapping | None = None) -> dict | None:
+def parse_fit_also(text: str | None) -> tuple:
+    """'friction' -> ('friction',): the scene parameters `--fit-also` fits beside the material."""
+    if not text:
+        return ()
+    names = tuple(n.strip() for n in str(text).split(",") if n.strip())
+    for n in names:
+        if n not in NUISANCE_FIELDS:
+            raise CalibrationError(f"--fit-also: unknown parameter {n!r}; expected some of {NUISANCE_FIELDS}")
+    return names
+
+
+def parse_start(text: str | None, fixed: Mapping | None = None, fit_also: tuple = ()) -> dict | None:
     """The first start's guess from `--start`: 'mu=150,sigma_y=30' -> {'mu': 150.0, 'sigma_y': 30.0}, or the
     path of a fit.json whose fitted parameters are taken (those held fixed in this fit are left out), e.g.
     a fit of the same data on a coarser grid. None when not given."""
     if not text:
         return None
+    names = FIT_FIELDS + tuple(fit_also)
     path = Path(text)
     if "=" not in text and path.suffix == ".json":
         try:
             params = json.loads(path.read_text(encoding="utf-8"))["params"]
-            out = {k: float(v) for k, v in params.items() if k in FIT_FIELDS and k not in (fixed or {})}
+            out = {k: float(v) for k, v in params.items() if k in names and k not in (fixed or {})}
         except FileNotFoundError:
             raise CalibrationError(f"--start: no such fit result {text!r}") from None
         except (ValueError, KeyError, TypeError, AttributeError, OSError) as exc:  # JSON, UTF-8, a directory
@@ -115,9 +127,9 @@ def parse_start(text: str | None, fixed: Mapping | None = None) -> dict | None:
         if not all(math.isfinite(v) for v in out.values()):
             raise CalibrationError(f"--start: {text!r} holds non-finite parameters {out}")
         if not out:
-            raise CalibrationError(f"--start: {text!r} holds none of the fitted parameters {FIT_FIELDS}")
+            raise CalibrationError(f"--start: {text!r} holds none of the fitted parameters {names}")
         return out
-    return _parse_numbers(text, "start", FIT_FIELDS)
+    return _parse_numbers(text, "start", names)
 
 
 def parse_bounds(text: str | None) -> dict:
@@ -126,8 +138,8 @@ def parse_bounds(text: str | None) -> dict:
         return {}
     out = {}
     for k, v in _parse_assignments(text, "bounds").items():
-        if k not in FIT_FIELDS:
-            raise CalibrationError(f"--bounds: unknown parameter {k!r}; expected one of {FIT_FIELDS}")
+        if k not in FIT_FIELDS + NUISANCE_FIELDS:
+            raise CalibrationError(f"--bounds: unknown parameter {k!r}; expected one of {FIT_FIELDS + NUISANCE_FIELDS}")
         try:
             lo, hi = (float(s) for s in v.split(":"))
         except ValueError as exc:
@@ -176,6 +188,9 @@ def add_fit_parser(subparsers) -> argparse.ArgumentParser:
                     help="hold parameters fixed, e.g. m=0.5,eta=10; kappa=.. or rho=.. override the scene's values")
     ap.add_argument("--bounds", default=None, help="bounds lo:hi, e.g. mu=20:1000,m=0.3:1.2 (defaults: "
                     + ", ".join(f"{k}={lo:g}:{hi:g}" for k, (lo, hi) in DEFAULT_BOUNDS.items()) + ")")
+    ap.add_argument("--fit-also", default=None, metavar="NAME,...",
+                    help="scene parameters to fit beside the material, with their own intervals: friction (the "
+                         "floor's Coulomb coefficient; default: the scene's value, known)")
     ap.add_argument("--starts", type=int_at_least(1), default=DEFAULT_STARTS, help=f"multi-start guesses (default {DEFAULT_STARTS})")
     ap.add_argument("--start", default=None, metavar="NAME=VALUE,...|FIT.json",
                     help="the first start's guess, e.g. mu=150,sigma_y=30, or a fit.json to continue from (e.g. a "
@@ -219,9 +234,10 @@ def add_fit_parser(subparsers) -> argparse.ArgumentParser:
 def settings_from_args(args) -> FitSettings:
     """The validated `FitSettings` of parsed `fit` arguments."""
     fixed = parse_fixed(args.fix)
+    fit_also = parse_fit_also(getattr(args, "fit_also", None))
     return FitSettings(dx=args.dx, ppc=args.ppc, optimizer=args.optimizer, fixed=fixed,
-                       bounds=parse_bounds(args.bounds), starts=args.starts,
-                       initial=parse_start(getattr(args, "start", None), fixed), max_iter=args.max_iter,
+                       bounds=parse_bounds(args.bounds), starts=args.starts, fit_also=fit_also,
+                       initial=parse_start(getattr(args, "start", None), fixed, fit_also), max_iter=args.max_iter,
                        time_budget=parse_duration(getattr(args, "time_budget", None)),
                        time_window=parse_window(getattr(args, "time_window", None)), seed=args.seed,
                        pixel_level=args.pixel_level, dtype=args.dtype,

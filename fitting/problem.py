@@ -69,13 +69,19 @@ def _observed(frames: dict, static) -> tuple:
     return frames["x"][idx], frames["active"][idx]
 
 
-def _params_from(z, static: _Static, base: Params) -> Params:
+def _bind(z, static: _Static, base: Params, model):
+    """(Params, Model) at fitted coordinates z: the material's parameters into `base`, the fitted scene
+    parameters (`FitSettings.fit_also`) into the model's scene."""
     theta = static.transform.to_physical(z)
-    return base.replace(**{n: theta[i] for i, n in enumerate(static.transform.names)})
+    values = {n: theta[i] for i, n in enumerate(static.transform.names)}
+    params = base.replace(**{n: v for n, v in values.items() if n in FIT_FIELDS})
+    if "friction" in values:
+        model = model.replace(scene=dataclasses.replace(model.scene, floor_friction=values["friction"]))
+    return params, model
 
 
 def _residual(z, static: _Static, base: Params, model, state0, frame_times, target):
-    params = _params_from(z, static, base)
+    params, model = _bind(z, static, base, model)
     _, frames, _ = rollout(model, state0, params, frame_times, observe=observe_positions, adjoint=Autodiff())
     x, active = _observed(frames, static)
     return residuals(x, active, target, static.cfg, distance=static.distance_weight,
@@ -125,7 +131,7 @@ def _residual_and_jacfwd(z, static, base, model, state0, frame_times, target):
 
 @functools.partial(jax.jit, static_argnames=("static",))
 def _positions(z, static, base, model, state0, frame_times):
-    params = _params_from(z, static, base)
+    params, model = _bind(z, static, base, model)
     _, frames, health = rollout(model, state0, params, frame_times, observe=observe_positions, adjoint=Autodiff())
     return frames["x"], frames["active"], health
 
@@ -212,7 +218,7 @@ class CalibrationProblem:
         return np.asarray(render_frames(jnp.asarray(x), jnp.asarray(active), self.cfg))
 
     def params_of(self, z) -> dict:
-        """Every material parameter (name -> float) at fitted coordinates z."""
+        """Every material parameter (name -> float) at fitted coordinates z, and the fitted scene parameters."""
         theta = np.asarray(self.transform.to_physical(jnp.asarray(z)))
         out = {n: float(getattr(self.base, n)) for n in FIT_FIELDS + KNOWN_INPUTS}
         out.update({n: float(theta[i]) for i, n in enumerate(self.transform.names)})
@@ -297,6 +303,9 @@ def build_problem(data: Silhouettes, settings: FitSettings | None = None, *,
     fitted = settings.fitted
     bounds = {n: settings.bounds_of(n) for n in fitted}
     transform = fit_transform(settings)
+    if "friction" in fitted and (scene.floor_y is None or scene.floor_sticky):
+        raise CalibrationError("fit_also: friction needs a scene whose floor has Coulomb friction; this scene has "
+                               + ("no floor" if scene.floor_y is None else "a sticky floor"))
 
     # The time step is that of the stiffest admissible material (mu at its upper bound, or fixed), so
     # every rollout of the fit is stable with one substep count.

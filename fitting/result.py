@@ -136,7 +136,7 @@ class FitResult:
         """A plain-text summary: values, intervals, correlations, notes."""
         pct = f"{100 * self.settings['level']:g}%"
         lines = [f"{'parameter':<10} {'value':>11}   {pct} interval{'':<14} statistical part    numerical error"]
-        for n in FIT_FIELDS + KNOWN_INPUTS:
+        for n in FIT_FIELDS + KNOWN_INPUTS + tuple(n for n in self.fitted if n not in FIT_FIELDS):
             v = self.params[n]
             if n in self.fitted:
                 lo, hi = self.interval[n]

@@ -14,10 +14,15 @@ from jaxfoam.resample import ResampleConfig
 # rheometry (shear moduli of tens to ~1000 Pa, yield stresses of ~1 to a few 100 Pa, consistencies
 # of ~0.1-100 Pa s^m, shear-thinning exponents 0.3-1; Durian 1990, Ovarlez 2010), so a bound is only
 # reached by a fit that has gone wrong. mu's upper bound also sets the time step (see `build_problem`).
-DEFAULT_BOUNDS = {"mu": (5.0, 2000.0), "sigma_y": (0.5, 500.0), "eta": (0.05, 500.0), "m": (0.2, 1.5)}
+DEFAULT_BOUNDS = {"mu": (5.0, 2000.0), "sigma_y": (0.5, 500.0), "eta": (0.05, 500.0), "m": (0.2, 1.5),
+                  "friction": (0.01, 2.0)}
 # Where multi-start initial guesses are drawn (log-uniform for mu, sigma_y, eta; uniform for m): the
 # shaving-cream ranges of the same sources, a little widened. Start 0 is the centre of these ranges.
-DEFAULT_START_RANGES = {"mu": (30.0, 600.0), "sigma_y": (5.0, 150.0), "eta": (0.5, 60.0), "m": (0.3, 1.0)}
+DEFAULT_START_RANGES = {"mu": (30.0, 600.0), "sigma_y": (5.0, 150.0), "eta": (0.5, 60.0), "m": (0.3, 1.0),
+                        "friction": (0.1, 1.0)}
+# Scene parameters a fit may estimate beside the material (`fit_also`): the floor's Coulomb coefficient
+# (dimensionless), which a user rarely knows for their table.
+NUISANCE_FIELDS = ("friction",)
 # Parameters the fitter may fit; kappa (Pa) and rho (kg/m^3) are known inputs that `fixed` may override.
 KNOWN_INPUTS = ("kappa", "rho")
 OPTIMIZERS = ("lm", "lbfgs", "adam")
@@ -117,6 +122,9 @@ class FitSettings:
       dx_check: estimate the numerical (discretization) error of the estimate from the residual and
         Jacobian on a grid of spacing DX_CHECK_RATIO dx and widen the intervals by it (see
         `discretization_error`).
+      fit_also: scene parameters fitted beside the material, from NUISANCE_FIELDS: "friction" (the floor's
+        Coulomb coefficient; the scene needs a floor that is not sticky). Their bounds, start ranges and
+        first guess may be given like the material's; they get intervals and identifiability notes too.
       dx_refit: Levenberg-Marquardt iterations (>= 0; None: DEFAULT_DX_REFIT, 4 in 2D, 2 in 3D) that the discretization
         check also runs on its finer grid from the optimum; the move they measure enters the check beside its
         two first-order estimates (the largest counts). 0: the estimates only. Ignored without dx_check. Costs
@@ -156,6 +164,7 @@ class FitSettings:
     chamfer_weight: float = 1.0
     dx_check: bool = True
     dx_refit: int | None = None
+    fit_also: tuple = ()
     resample: object = FIT_RESAMPLE
     fracture: object = FIT_FRACTURE
 
@@ -163,6 +172,7 @@ class FitSettings:
         # True / dict -> the config object (frozen dataclass: set through object.__setattr__).
         object.__setattr__(self, "resample", _as_config(self.resample, ResampleConfig, "resample"))
         object.__setattr__(self, "fracture", _as_config(self.fracture, FractureConfig, "fracture"))
+        object.__setattr__(self, "fit_also", tuple(self.fit_also))
 
     def validate(self) -> "FitSettings":
         if self.optimizer not in OPTIMIZERS:
@@ -179,19 +189,25 @@ class FitSettings:
                 raise CalibrationError(f"fixed: unknown parameter {name!r}; expected one of {FIT_FIELDS + KNOWN_INPUTS}")
             if not math.isfinite(float(value)):
                 raise CalibrationError(f"fixed: {name} must be a finite number, got {value!r}")
-        if all(n in self.fixed for n in FIT_FIELDS):
+        if all(n in self.fixed for n in FIT_FIELDS) and not self.fit_also:
             raise CalibrationError(f"fixed: every parameter {FIT_FIELDS} is fixed, nothing is left to fit")
+        for name in self.fit_also:
+            if name not in NUISANCE_FIELDS:
+                raise CalibrationError(f"fit_also: unknown parameter {name!r}; expected some of {NUISANCE_FIELDS}")
+        if len(set(self.fit_also)) != len(self.fit_also):
+            raise CalibrationError(f"fit_also: a parameter is named twice in {self.fit_also}")
+        known = FIT_FIELDS + self.fit_also
         for label, table in (("bounds", self.bounds), ("start_ranges", self.start_ranges)):
             for name, (lo, hi) in table.items():
-                if name not in FIT_FIELDS:
-                    raise CalibrationError(f"{label}: unknown parameter {name!r}; expected one of {FIT_FIELDS}")
+                if name not in known:
+                    raise CalibrationError(f"{label}: unknown parameter {name!r}; expected one of {known}")
                 if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo < hi):
                     raise CalibrationError(f"{label}: {name} needs finite 0 < lo < hi, got {lo}:{hi}")
         if not int(self.starts) >= 1:
             raise CalibrationError(f"starts must be >= 1, got {self.starts!r}")
         for name, value in (self.initial or {}).items():
-            if name not in FIT_FIELDS:
-                raise CalibrationError(f"initial: unknown parameter {name!r}; expected one of {FIT_FIELDS}")
+            if name not in known:
+                raise CalibrationError(f"initial: unknown parameter {name!r}; expected one of {known}")
             if name in self.fixed:
                 raise CalibrationError(f"initial: {name} is fixed (fixed={dict(self.fixed)}); give it one or the other")
             lo, hi = self.bounds_of(name)
@@ -256,8 +272,8 @@ class FitSettings:
 
     @property
     def fitted(self) -> tuple:
-        """Names of the fitted parameters, in FIT_FIELDS order."""
-        return tuple(n for n in FIT_FIELDS if n not in self.fixed)
+        """Names of the fitted parameters: the material's in FIT_FIELDS order, then `fit_also`."""
+        return tuple(n for n in FIT_FIELDS if n not in self.fixed) + self.fit_also
 
     @property
     def iterations(self) -> int:
@@ -277,8 +293,9 @@ class FitSettings:
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
         d["fixed"] = {k: float(v) for k, v in self.fixed.items()}
-        d["bounds"] = {n: list(self.bounds_of(n)) for n in FIT_FIELDS}
-        d["start_ranges"] = {n: list(self.start_range_of(n)) for n in FIT_FIELDS}
+        d["bounds"] = {n: list(self.bounds_of(n)) for n in FIT_FIELDS + self.fit_also}
+        d["start_ranges"] = {n: list(self.start_range_of(n)) for n in FIT_FIELDS + self.fit_also}
+        d["fit_also"] = list(self.fit_also)
         d["max_iter"] = self.iterations
         d["initial"] = None if self.initial is None else {k: float(v) for k, v in self.initial.items()}
         # The feature configs as dicts of their fields (None when off).

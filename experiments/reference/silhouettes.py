@@ -152,9 +152,6 @@ def write(path, masks, times, camera, scene_spec, weights, source, truth):
 
 
 def read_back(path):
-    """Read a file with jaxfoam's own reader (wherever it lives now), which validates it against the spec."""
-    try:
-        from fitting.io import read_silhouettes
-    except ImportError:
-        from jaxfoam.io import read_silhouettes
+    """Read a file with the calibration package's reader, which validates it against the spec."""
+    from fitting.io import read_silhouettes
     return read_silhouettes(path)

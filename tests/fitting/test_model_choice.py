@@ -13,7 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxfoam import Params, calibrate
+import fitting.settings as calibrate
+from fitting import build_problem
+from fitting.cli import add_fit_parser
+from jaxfoam import Params
 from jaxfoam._scene import init_state
 from jaxfoam import stable_dt
 from fitting import synthesize
@@ -51,13 +54,13 @@ def test_fitter_uses_the_constants(tmp_path):
     """FitSettings, the `jaxfoam fit` parser and build_problem take their defaults from the constants."""
     assert calibrate.FitSettings().dtype == calibrate.FIT_DTYPE
     sub = argparse.ArgumentParser().add_subparsers()
-    ap = calibrate.add_fit_parser(sub)
+    ap = add_fit_parser(sub)
     assert ap.get_default("dtype") == calibrate.FIT_DTYPE
 
     scene = zoo_scene("slump")
     data = synthesize(scene, {"mu": 150.0, "sigma_y": 25.0, "eta": 5.0, "m": 0.6}, dx=0.02, frames=2,
                       duration=0.01, noise=0.0, seed=0)
-    problem = calibrate.build_problem(data, calibrate.FitSettings(starts=1))
+    problem = build_problem(data, calibrate.FitSettings(starts=1))
     assert math.isclose(problem.dx, 0.24 / calibrate.FIT_CELLS[2], rel_tol=1e-12)
     # The initial particles are sampled at FIT_PPC per cell (the count differs for any other ppc).
     sampled = init_state(problem.scene, problem.dx, calibrate.FIT_PPC[2], rho=80.0, seed=0)

@@ -65,7 +65,7 @@ def test_first_mask_start_grips_the_plate_like_the_exact_shape(monkeypatch):
     filled too, 110 when only foam touching the plate face was continued."""
     import dataclasses
 
-    from jaxfoam import io
+    from fitting import io
     from fitting import FitSettings, build_problem
     from fitting import synthesize
 
