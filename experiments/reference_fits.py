@@ -23,7 +23,6 @@ import time
 from pathlib import Path
 
 import jax
-import numpy as np
 
 from experiments import _common as C
 from fitting import FIT_FIELDS, FitSettings, build_problem, calibrate, read_silhouettes
