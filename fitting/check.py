@@ -219,3 +219,35 @@ def combine_intervals(unc: optim.Uncertainty, error_z, transform: optim.Paramete
     with np.errstate(invalid="ignore"):
         ends = np.stack([np.asarray(transform.to_physical(z - half)), np.asarray(transform.to_physical(z + half))], 1)
     return np.sort(ends, axis=1)
+
+
+# Beyond this factor on the fit's time a finer grid is not suggested (hours become days).
+MAX_SUGGESTED_COST = 1000.0
+
+
+def grid_limit_note(names, error_z, half_stat_z, dx: float, dim: int, fit_seconds: float) -> str | None:
+    """The note that says when the grid, not the data, limits the answer, and what to do.
+
+    error_z, half_stat_z: per parameter the numerical error and the statistical half-width, in fitted
+    coordinates. For the parameters whose error exceeds their half-width, the dx at which a first-order
+    error falls to the half-width (dx / worst ratio) and its cost, the ratio^(d+1) (particles ~ dx^-d,
+    substeps ~ dx^-1) times `fit_seconds` (s). None when the data limit every parameter.
+    """
+    ratios = {n: float(e) / float(h) for n, e, h in zip(names, error_z, half_stat_z)
+              if np.isfinite(e) and np.isfinite(h) and h > 0 and e > h}
+    if not ratios:
+        return None
+    worst = max(ratios.values())
+    listed = ", ".join(f"{n} ({r:.2g}x)" for n, r in ratios.items())
+    cost = worst ** (dim + 1)
+    text = (f"The grid, not the data, limits {', '.join(ratios)}: the dx = {dx:.3g} m grid's numerical error exceeds "
+            f"the statistical half-width ({listed}). ")
+    if cost <= MAX_SUGGESTED_COST:
+        text += (f"At first order, --dx {dx / worst:.3g} would bring it to the data's level, at about {cost:.3g}x this "
+                 f"fit's time (about {cost * fit_seconds / 60:.3g} min); a recording that constrains these parameters "
+                 f"more does not need a finer grid.")
+    else:
+        text += (f"A grid fine enough (--dx {dx / worst:.3g} at first order) would cost over {MAX_SUGGESTED_COST:g}x "
+                 f"this fit's time; fit a recording that constrains these parameters more instead.")
+    return text
+

@@ -21,7 +21,8 @@ from .settings import (ADAM_DECAY, ADAM_LEARNING_RATE, BOUND_SPAN_FRACTION, Cali
                        FitSettings, GCI_SAFETY, OPTIMIZERS, XTOL)
 from .result import FitResult, _format_params
 from .problem import CalibrationProblem, _data_fingerprint, build_problem, fitted_occupancy
-from .check import combine_intervals, discretization_error, fit_uncertainty, numerical_half_width, uneven_frames_note
+from .check import (combine_intervals, discretization_error, fit_uncertainty, grid_limit_note, numerical_half_width,
+                    uneven_frames_note)
 
 
 def judge_reported_intervals(interval: dict, params: dict, transform, identifiable: dict):
@@ -236,10 +237,6 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
             for i, n in enumerate(names):
                 numerical[n] = float(half_num[i])
                 interval[n] = tuple(float(v) for v in both[i])
-                if err_z[i] > half_stat[i]:
-                    notes.append(f"{n}: the numerical error of the dx = {problem.dx:.3g} m grid (about "
-                                 f"{numerical[n]:.3g}) exceeds the statistical uncertainty; a finer --dx narrows "
-                                 f"the interval.")
             dx_check = dict(ratio=DX_CHECK_RATIO, order=DX_CHECK_ORDER, safety=GCI_SAFETY,
                             jacobian=DX_CHECK_JACOBIAN,
                             shift_z_fit_jacobian=[float(v) for v in details.get("shift_fit_jacobian", [math.nan] * p)],
@@ -251,6 +248,10 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
                             refit_iterations=details.get("refit_iterations"), refit_reason=details.get("refit_reason"),
                             refit_loss=list(details["refit_loss"]) if "refit_loss" in details else None,
                             frame_change=None if change is None else [float(v) for v in change])
+            limit = grid_limit_note(names, err_z, half_stat, problem.dx, problem.scene.dim,
+                                    sum(float(s.wall_time) for s in ms.solutions))
+            if limit:
+                notes.append(limit)
             uneven = None if change is None else uneven_frames_note(
                 [float(data.times[i]) for i in problem.frames], change, problem.dx)
             if uneven:
