@@ -9,7 +9,7 @@ silhouettes' IoU and mean boundary distance to the data (`fitting.silhouette_mis
 worst, and the rollout's wall time. The loss at the truth is the discretization's share of the misfit:
 a fit on that grid can only do better than the truth by moving away from it.
 
-Usage: python -m experiments reference_bias [--quick]   (quick: the default dx only, the first file)
+Usage: python -m experiments reference_bias [--quick]   (quick: the default dx only)
 Writes experiments/results/reference_bias[_quick].md. SI units.
 """
 from __future__ import annotations
@@ -69,7 +69,7 @@ def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     quick = "--quick" in argv
     jax.config.update("jax_enable_x64", True)
-    files = sorted(p for p in DATA.glob("*_2d_set*.h5"))[:1 if quick else None]
+    files = sorted(p for p in DATA.glob("*_2d_set*.h5"))
     refinements = REFINEMENTS[:1] if quick else REFINEMENTS
     rows = []
     for path in files:
