@@ -1,14 +1,13 @@
 """The reference simulator (experiments/reference): its laws on tiny problems, and one short validation case."""
 from __future__ import annotations
 
-import math
 
 import numpy as np
 import pytest
 
 from experiments.reference import material as M
 from experiments.reference import mpm
-from experiments.reference.scene import Boundaries, Plate, RefScene, sample
+from experiments.reference.scene import Plate, RefScene, sample
 from experiments.reference.silhouettes import Camera, plate_pixels, read_back, render_mask, write
 
 

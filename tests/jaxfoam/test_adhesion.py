@@ -9,7 +9,6 @@ a never-releasing sticky ceiling; with 10 Pa it parts from the ceiling and falls
 mass drops by g t^2 / 2 = 31.4 mm within 10%; measured 29.5 mm)."""
 import jax
 import jax.numpy as jnp
-import numpy as np
 import pytest
 
 import jaxfoam

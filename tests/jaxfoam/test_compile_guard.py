@@ -8,7 +8,6 @@ the same result."""
 import os
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 

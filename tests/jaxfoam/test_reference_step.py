@@ -56,7 +56,6 @@ def _return_map(b, f, p, dt):
 
 def _boundaries(v, node_x, scene, t):
     """Sticky plates, the floor (Coulomb friction on approaching nodes), slip walls; v (G, d) m/s."""
-    d = v.shape[1]
     for plate in scene.plates:
         inside = jnp.all(jnp.abs(node_x - plate.position(t)[None, :]) <= plate.half_size[None, :], axis=1)
         v = jnp.where(inside[:, None], plate.velocity(t)[None, :], v)
