@@ -65,7 +65,7 @@ BOUND_SPAN_FRACTION = 0.9
 FIT_CELLS = {2: 64, 3: 32}  # cells across the largest extent: 2D the best grid measured, 3D the affordable one
 FIT_PPC = {2: 4, 3: 8}
 FIT_CFL = 0.3
-FIT_DTYPE = "float64"  # float32 reaches float64's optima at only 1.0-1.5x its speed (docs/calibrate.md)
+FIT_DTYPE = "float64"  # float32 reaches float64's optima with too little speed gain to trade precision for
 # Particle resampling and fracture in the fit's rollouts: off; on the 2D fit scenes neither moved a fit
 # outside the plain fit's interval (experiments/results/fit_features.md).
 FIT_RESAMPLE = None
