@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxfoam
+from jaxfoam.guards import atomic_output
 
 # JAXFOAM_RESULTS_DIR redirects the charts and tables (the test suite's quick runs keep the committed ones).
 RESULTS = Path(os.environ.get("JAXFOAM_RESULTS_DIR") or Path(__file__).resolve().parent / "results")
@@ -55,13 +56,17 @@ def md_table(header: list[str], rows: list[list]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_md(name: str, quick: bool, title: str, body: str, command: str | None = None) -> Path:
-    """Write results/<name>[_quick].md. command: the experiment and flags that regenerate it, when
-    they differ from `name` (a partial study written under its own name)."""
+def write_md(name: str, quick: bool, title: str, body: str, command: str | None = None,
+             stamp: str | None = None) -> Path:
+    """Write results/<name>[_quick].md (atomically). command: the experiment and flags that regenerate it,
+    when they differ from `name` (a partial study written under its own name). stamp: the measurement's
+    `machine_line`, for a page rebuilt from a record (default: now)."""
     path = out_path(name, "md", quick)
     mode = "quick" if quick else "full"
-    path.write_text(f"# {title}\n\n_{mode} run; regenerate with `python -m experiments {command or name}"
-                    f"{' --quick' if quick else ''}`. {machine_line()}_\n\n{body}")
+    text = (f"# {title}\n\n_{mode} run; regenerate with `python -m experiments {command or name}"
+            f"{' --quick' if quick else ''}`. {stamp or machine_line()}_\n\n{body}")
+    with atomic_output(path) as tmp:
+        Path(tmp).write_text(text)
     print(f"wrote {path}")
     return path
 
