@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 import jax
+
 jax.config.update("jax_enable_x64", True)  # float64 cases and fits; jaxfoam leaves the config alone
 import jax.numpy as jnp
 import numpy as np

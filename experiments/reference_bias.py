@@ -31,7 +31,13 @@ import jax
 import numpy as np
 
 from experiments import _common as C
-from fitting import FitSettings, build_problem, calibrate, read_silhouettes, silhouette_mismatch
+from fitting import (
+    FitSettings,
+    build_problem,
+    calibrate,
+    read_silhouettes,
+    silhouette_mismatch,
+)
 from jaxfoam.guards import atomic_output
 
 DATA = Path(__file__).resolve().parent / "reference" / "data"
