@@ -9,7 +9,7 @@ silhouettes' IoU and mean boundary distance to the data (`fitting.silhouette_mis
 worst, and the rollout's wall time. The loss at the truth is the discretization's share of the misfit:
 a fit on that grid can only do better than the truth by moving away from it.
 
-With --friction (drop and squeeze files, default dx only): the floor's Coulomb coefficient fitted alone
+With --friction (files with a Coulomb floor the foam lands on: the drops; default dx only): the floor's Coulomb coefficient fitted alone
 (`fit_also=("friction",)`, the material held at the truth) for each contact model, so that the
 discretization's share of the misfit is measured with the one scene parameter a user does not know
 profiled out, and the grid and particle contacts are compared at their own best friction.
@@ -178,10 +178,12 @@ def main(argv=None) -> int:
     if "--friction" in argv:
         frows = []
         for p in files:
-            if p.name.startswith("hanging"):
-                continue
+            data = read_silhouettes(p)
+            floor = json.loads(data.scene_json).get("floor", {})
+            if p.name.startswith("hanging") or floor.get("friction") in (None, "sticky"):
+                continue  # the floor barely matters (hanging) or has no friction to fit (sticky)
             for contact in CONTACTS:
-                r = friction_fit(read_silhouettes(p), contact)
+                r = friction_fit(data, contact)
                 r["file"] = p.name
                 frows.append(r)
                 print(f"{p.name} {contact}: friction {r['friction']:.3g}, loss {r['loss']:.4g}, IoU min "
