@@ -14,8 +14,9 @@ With --friction (files with a Coulomb floor the foam lands on: the drops; defaul
 discretization's share of the misfit is measured with the one scene parameter a user does not know
 profiled out, and the grid and particle contacts are compared at their own best friction.
 
-Usage: python -m experiments reference_bias [--quick] [--friction] [--report]
-  (quick: the default dx only; report: rebuild the page from the committed JSON record, no runs)
+Usage: python -m experiments reference_bias [--quick] [--friction] [--report] [--only TEXT] [--contact C]
+  (quick: the default dx only; report: rebuild the page from the committed JSON record, no runs;
+  only / contact: rerun just the files whose name contains TEXT / that contact, replacing their rows)
 Writes experiments/results/reference_bias[_quick].md and .json (the rows). SI units.
 """
 from __future__ import annotations
@@ -175,6 +176,17 @@ def main(argv=None) -> int:
     jax.config.update("jax_enable_x64", True)
     files = sorted(p for p in DATA.glob("*_2d_set*.h5"))
     rec = json.loads(path.read_text()) if path.exists() else {}
+    only = argv[argv.index("--only") + 1] if "--only" in argv else ""
+    contacts = (argv[argv.index("--contact") + 1],) if "--contact" in argv else CONTACTS
+    files = [p for p in files if only in p.name]
+
+    def merged(old: list, new: list) -> list:
+        """old rows with those of the rerun (file, contact[, refine]) replaced, in the old order."""
+        key = lambda r: (r["file"], r["contact"], r.get("refine"))
+        fresh = {key(r): r for r in new}
+        out = [fresh.pop(key(r), r) for r in old]
+        return out + list(fresh.values())
+
     if "--friction" in argv:
         frows = []
         for p in files:
@@ -182,26 +194,26 @@ def main(argv=None) -> int:
             floor = json.loads(data.scene_json).get("floor", {})
             if p.name.startswith("hanging") or floor.get("friction") in (None, "sticky"):
                 continue  # the floor barely matters (hanging) or has no friction to fit (sticky)
-            for contact in CONTACTS:
+            for contact in contacts:
                 r = friction_fit(data, contact)
                 r["file"] = p.name
                 frows.append(r)
                 print(f"{p.name} {contact}: friction {r['friction']:.3g}, loss {r['loss']:.4g}, IoU min "
                       f"{r['iou_min']:.3f}, {r['wall']:.0f} s", flush=True)
-        rec["friction"] = frows
+        rec["friction"] = merged(rec.get("friction", []), frows)
     else:
         refinements = REFINEMENTS[:1] if quick else REFINEMENTS
         rows = []
         for p in files:
             data = read_silhouettes(p)
-            for contact in CONTACTS:
+            for contact in contacts:
                 for refine in refinements:
                     r = at_truth(data, contact, refine)
                     rows.append(dict(file=p.name, contact=contact, refine=refine, **r))
                     print(f"{p.name} {contact} dx {r['dx'] * 1e3:.2f} mm: loss {r['loss']:.4g} (pixel {r['pixel']:.3g}, "
                           f"distance {r['distance']:.3g}, chamfer {r['chamfer']:.3g}), IoU min "
                           f"{r['iou_min']:.3f}, boundary max {r['boundary_max'] * 1e3:.2f} mm", flush=True)
-        rec["rows"] = rows
+        rec["rows"] = merged(rec.get("rows", []), rows)
         rec["stamp"] = C.machine_line()
     with atomic_output(path) as tmp:
         Path(tmp).write_text(json.dumps(rec, indent=1))

@@ -1,0 +1,122 @@
+"""How much the grid's phase, not its spacing, moves the fit's misfit at the truth, and what averaging
+over phases gives.
+
+For the reference simulator's 2D drop, hanging-plate and squeeze files (experiments/reference/data), the fitter's
+problem (every default, all four parameters) is evaluated at the file's /truth on the default grid with
+its node lattice shifted down by 0, 1/4, 1/2 and 3/4 of a cell along y (the scene's domain extended
+below by that much: the floor and the plate's face then lie at other heights against the node rows,
+nothing else changes). Per phase: the loss at the truth, the worst-frame IoU and the mean boundary
+distance (`fitting.silhouette_mismatch`). Then the silhouettes of the four phases averaged (their soft
+occupancies, per pixel) and scored the same way: what a phase-averaged model would reach at 4x the
+cost, next to one grid at dx / 2 (8x the cost in 2D; `reference_bias.md`).
+
+Usage: python -m experiments grid_phase [--quick] [--report]   (quick: set 0 of each scene)
+Writes experiments/results/grid_phase[_quick].md and .json. SI units.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from experiments import _common as C
+from fitting import FitSettings, build_problem, read_silhouettes, silhouette_mismatch
+from jaxfoam.guards import atomic_output
+
+DATA = Path(__file__).resolve().parent / "reference" / "data"
+PHASES = (0.0, 0.25, 0.5, 0.75)  # cells the node lattice moves down along y
+NAME = "grid_phase"
+
+
+def shifted(data, cells: float, dx: float):
+    """The data with the scene's domain extended down by `cells` grid cells (the lattice moves with it)."""
+    spec = json.loads(data.scene_json)
+    spec["domain"]["min"][1] -= cells * dx
+    return dataclasses.replace(data, scene_json=json.dumps(spec))
+
+
+def row_offset(spec: dict, y: float, dx: float) -> float:
+    """Cells from the highest node row at or below height y up to y (grid origin domain min - 3 dx)."""
+    origin = spec["domain"]["min"][1] - 3 * dx
+    k = np.floor((y - origin) / dx + 1e-9)
+    return float((y - origin) / dx - k)
+
+
+def evaluate(path: Path) -> dict:
+    data = read_silhouettes(path)
+    dx = build_problem(data, FitSettings(starts=1, dx_check=False)).dx
+    rows, renders, masks = [], [], None
+    for ph in PHASES:
+        d = shifted(data, ph, dx)
+        spec = json.loads(d.scene_json)
+        problem = build_problem(d, FitSettings(dx=dx, starts=1, dx_check=False))
+        truth = {n: float(data.truth[n]) for n in problem.transform.names}
+        t0 = time.perf_counter()
+        r = np.asarray(problem.residual(problem.transform.to_unconstrained(truth)))
+        img = np.asarray(problem.render(truth))
+        wall = time.perf_counter() - t0
+        iou, boundary = silhouette_mismatch(img, problem.masks, problem.weights, problem.cfg.pixel_size)
+        renders.append(img)
+        masks = (problem.masks, problem.weights, problem.cfg.pixel_size)
+        floor = spec.get("floor", {}).get("y")
+        face = spec["plate"]["center"][1] - spec["plate"]["half_size"][1] if "plate" in spec else None
+        rows.append(dict(phase=ph, loss=0.5 * float(r @ r), iou_min=float(np.min(iou)),
+                         boundary_mean=float(np.mean(boundary)),
+                         floor_above_row=None if floor is None else row_offset(spec, floor, dx),
+                         face_below_row=None if face is None else (1.0 - row_offset(spec, face, dx)) % 1.0,
+                         wall=wall))
+        print(f"{path.name} phase {ph}: loss {rows[-1]['loss']:.4g}, IoU min {rows[-1]['iou_min']:.3f}, "
+              f"boundary {rows[-1]['boundary_mean'] * 1e3:.2f} mm, {wall:.0f} s", flush=True)
+    iou, boundary = silhouette_mismatch(np.mean(renders, axis=0), *masks)
+    return dict(file=path.name, dx=dx, phases=rows, averaged=dict(iou_min=float(np.min(iou)),
+                                                                    boundary_mean=float(np.mean(boundary))))
+
+
+def page(rec: dict, quick: bool) -> None:
+    head = ["file", "dx (mm)", "lattice shift (cells)", "floor above its node row (cells)",
+            "plate face below its node row (cells)", "loss at truth", "IoU min", "boundary mean (mm)", "rollout (s)"]
+    table, summary = [], []
+    for f in rec["files"]:
+        for r in f["phases"]:
+            table.append([f["file"], f"{f['dx'] * 1e3:.2f}", r["phase"],
+                          "" if r["floor_above_row"] is None else f"{r['floor_above_row']:.2f}",
+                          "" if r["face_below_row"] is None else f"{r['face_below_row']:.2f}",
+                          f"{r['loss']:.4g}", f"{r['iou_min']:.3f}", f"{r['boundary_mean'] * 1e3:.2f}", f"{r['wall']:.0f}"])
+        losses = [r["loss"] for r in f["phases"]]
+        b = [r["boundary_mean"] * 1e3 for r in f["phases"]]
+        a = f["averaged"]
+        table.append([f["file"], f"{f['dx'] * 1e3:.2f}", "mean of the 4", "", "", "", f"{a['iou_min']:.3f}",
+                      f"{a['boundary_mean'] * 1e3:.2f}", ""])
+        summary.append(f"- {f['file']}: loss at the truth {min(losses):.3g} to {max(losses):.3g} over the phases "
+                       f"({max(losses) / min(losses):.1f}x); boundary distance {min(b):.2f}-{max(b):.2f} mm, "
+                       f"{a['boundary_mean'] * 1e3:.2f} mm for the phase-averaged silhouettes.")
+    body = ("The fitter's problem at each file's /truth on the default grid, its node lattice shifted along y "
+            "(the scene's domain extended below). Last row per file: the four phases' soft silhouettes averaged.\n\n"
+            + C.md_table(head, table) + "\n" + "\n".join(summary) + "\n")
+    C.write_md(NAME, quick, "The grid's phase against its spacing, at the true parameters", body, stamp=rec["stamp"])
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    quick = "--quick" in argv
+    path = C.out_path(NAME, "json", quick)
+    if "--report" in argv:
+        page(json.loads(path.read_text()), quick)
+        return 0
+    jax.config.update("jax_enable_x64", True)
+    pattern = "*_2d_set0.h5" if quick else "*_2d_set*.h5"
+    files = [p for p in sorted(DATA.glob(pattern)) if p.name.startswith(("drop", "hanging", "squeeze"))]
+    rec = dict(files=[evaluate(p) for p in files], stamp=C.machine_line())
+    with atomic_output(path) as tmp:
+        Path(tmp).write_text(json.dumps(rec, indent=1))
+    page(rec, quick)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
