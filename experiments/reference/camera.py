@@ -44,9 +44,9 @@ class Look:
     background texture scale m and contrast, lens blur (video pixels) and sensor noise."""
 
     light: tuple = (-0.45, 0.55, 0.70)
-    rim: float = 0.004               # m: how far in from the edge the foam surface turns to face the camera
-    ambient: float = 0.35            # fraction of the light reaching every surface (room light)
-    wrap: float = 0.5                # wrap lighting: n.l is remapped to (n.l + wrap) / (1 + wrap)
+    rim: float = 0.0025              # m: how far in from the edge the foam surface turns to face the camera
+    ambient: float = 0.45            # fraction of the light reaching every surface (room light)
+    wrap: float = 0.8                # wrap lighting: n.l is remapped to (n.l + wrap) / (1 + wrap)
     soften: float = 0.0012           # m: Gaussian blur of the foam's shading (subsurface-like)
     foam_rgb: tuple = (0.97, 0.96, 0.93)
     plate_rgb: tuple = (0.50, 0.34, 0.20)
@@ -63,7 +63,7 @@ class Look:
 
 def video_times(duration, fps):
     """Frame times k / fps (s) on [0, duration] s."""
-    n = int(math.floor(duration * fps + 1e-9)) + 1
+    n = math.floor(duration * fps + 1e-9) + 1
     return np.arange(n) / float(fps)
 
 
@@ -134,7 +134,7 @@ def _shift(img, dj, di):
     """img (rows, cols) shifted by di rows down and dj columns right (whole sub-pixels), zeros enter."""
     out = np.zeros_like(img)
     H, W = img.shape
-    di, dj = int(round(di)), int(round(dj))
+    di, dj = round(di), round(dj)
     src = img[max(0, -di):H - max(0, di), max(0, -dj):W - max(0, dj)]
     out[max(0, di):max(0, di) + src.shape[0], max(0, dj):max(0, dj) + src.shape[1]] = src
     return out
