@@ -338,9 +338,9 @@ def add_track_parser(subparsers) -> argparse.ArgumentParser:
     ap.add_argument("--polarity", choices=POLARITIES, default="any",
                     help="with a background: any difference (default), or only pixels brighter (white foam: "
                          "its shadow is not foam) or darker than the background")
-    ap.add_argument("--edges", choices=EDGES, default="half",
-                    help="half (default): edge pixels are foam when at least halfway from the local background "
-                         "to the local foam level; threshold: the thresholded difference as it is")
+    ap.add_argument("--edges", choices=EDGES, default="threshold",
+                    help="threshold (default): the thresholded difference as it is; half: edge pixels are foam "
+                         "when at least halfway from the local background to the local foam level")
     ap.add_argument("--fps", type=positive_float, default=None, help="frame rate (default: from the file)")
     ap.add_argument("--t0", type=float_in(0.0), default=0.0, help="time of the first frame since the scene's start, s")
     ap.add_argument("--every", type=int_at_least(1), default=1, help="keep one frame in EVERY")

@@ -8,7 +8,7 @@ Pipeline (numpy only; frames come from imageio):
    the first frame, or a photo of the empty scene; `polarity` 'brighter' counts only pixels brighter
    than the background, so a shadow the foam casts is not foam), or, with background 'none', the
    brightness (foam is white; `invert` for dark foam); thresholded at a given value or by Otsu's method;
-4. edges at half contrast (`edges` 'half', the default): a global threshold puts the edge where the
+4. optionally, edges at half contrast (`edges` 'half'): a global threshold puts the edge where the
    difference crosses it, too far in where the foam's rim is shaded darker than its middle and too far
    out where it is brighter. Within EDGE_BAND pixels of the thresholded edge, a pixel is foam when its
    difference is at least halfway from the local background level to the local foam level (means over
@@ -187,7 +187,7 @@ def otsu_threshold(values: np.ndarray, bins: int = OTSU_BINS) -> float:
 # ----------------------------------------------------------------------------------------------
 
 def foreground(frames: np.ndarray, background: str | np.ndarray = "median", threshold: float | None = None,
-               invert: bool = False, polarity: str = "any", edges: str = "half") -> tuple[np.ndarray, float]:
+               invert: bool = False, polarity: str = "any", edges: str = "threshold") -> tuple[np.ndarray, float]:
     """Raw foreground masks (T, H, W) bool and the threshold used.
 
     frames: (T, H, W, C) in [0, 1]. background: 'median' (per-pixel median of up to MEDIAN_FRAMES
@@ -282,7 +282,7 @@ def clean_mask(mask: np.ndarray, open_radius: int = OPEN_RADIUS, close_radius: i
 
 
 def track_video(video: str | os.PathLike, pixel_size: float, origin, scene, *, background: str | np.ndarray = "median",
-                threshold: float | None = None, invert: bool = False, polarity: str = "any", edges: str = "half",
+                threshold: float | None = None, invert: bool = False, polarity: str = "any", edges: str = "threshold",
                 fps: float | None = None, t0: float = 0.0,
                 every: int = 1, downsample: int = 1, max_frames: int | None = None, open_radius: int = OPEN_RADIUS,
                 close_radius: int = CLOSE_RADIUS, holes: bool = True, plate_margin: int | None = PLATE_MARGIN,
