@@ -13,11 +13,11 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # experiments/ is a folder of the repository
 pytest.importorskip("imageio_ffmpeg")
-from experiments.reference import camera as K  # noqa: E402
-from experiments.reference.scene import SCENES_DIR, RefScene, particle_spacing, sample  # noqa: E402
-from experiments.reference.silhouettes import Camera  # noqa: E402
-from fitting.track import foreground, half_contrast_edges, track_video  # noqa: E402
-from fitting.video import read_frames  # noqa: E402
+from experiments.reference import camera as K
+from experiments.reference.scene import SCENES_DIR, RefScene, particle_spacing, sample
+from experiments.reference.silhouettes import Camera
+from fitting.track import foreground, half_contrast_edges, track_video
+from fitting.video import read_frames
 
 FPS = 24.0  # not a multiple of the reference data's 30 Hz
 
@@ -40,7 +40,7 @@ def test_video_times_are_k_over_fps():
 
 
 def test_camera_is_deterministic_for_a_seed(clip):
-    scene, x, times, spacing = clip
+    scene, x, _, spacing = clip
     cam = K.video_camera(scene.lo, scene.hi, 0.0025)
     a = K.render_frame(x[0], 0.0, spacing, cam, scene, K.Look(seed=1))
     b = K.render_frame(x[0], 0.0, spacing, cam, scene, K.Look(seed=1))
