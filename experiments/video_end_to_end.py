@@ -146,8 +146,10 @@ def film(vc, quick, folder, progress=print):
                      "--polarity", POLARITY, "--close", CLOSE, "--edges", EDGES, "--downsample", vc.downsample])
     tracked, exact = read_silhouettes(tracked_path), read_silhouettes(exact_path)
     ious = iou_per_frame(tracked, exact)
+    area = np.asarray(tracked.masks, float).sum(axis=(1, 2)) - np.asarray(exact.masks, float).sum(axis=(1, 2))
     progress(f"{vc.stem}: {len(times)} frames, IoU min {ious.min():.4f} mean {ious.mean():.4f}")
-    return dict(vc=vc, frames=len(times), shape=cam.shape, times=times, ious=ious,
+    return dict(vc=vc, frames=len(times), shape=cam.shape, times=times, ious=ious, area_diff=area,
+                exact_area=np.asarray(exact.masks, float).sum(axis=(1, 2)),
                 tracked_times=np.asarray(tracked.times), video=video_path, exact=exact_path, tracked=tracked_path,
                 size_kB=video_path.stat().st_size / 1024, rec=rec, render_s=t_render.seconds, track_s=t_track.seconds,
                 frame=frames[len(frames) // 2], mask=np.asarray(tracked.masks[len(frames) // 2]),
@@ -228,6 +230,10 @@ def main(argv=None) -> int:
                               vc.pixel_size * vc.downsample * 1e3, f"{r['size_kB']:.0f}", f"{ious.min():.4f}",
                               f"{ious.mean():.4f}", f"{int(np.sum(ious >= IOU_GOAL))} of {len(ious)}"]]),
                  "IoU per frame: " + ", ".join(f"{t:.3f} s {v:.4f}" for t, v in zip(r["times"], ious)) + ".", "",
+                 (f"IoU goal ({IOU_GOAL}) met in every frame: {'yes' if ious.min() >= IOU_GOAL else 'NO'}. Tracked "
+                  f"minus exact foam area: {np.mean(r['area_diff']):+.1f} pixels per frame on average (range "
+                  f"{np.min(r['area_diff']):+.0f} to {np.max(r['area_diff']):+.0f}; the exact masks hold "
+                  f"{np.mean(r['exact_area']):.0f} pixels)."), "",
                  (f"Reference run: dx {rec['dx'] * 1e3:.3g} mm, {rec['steps']} steps, {rec['wall_s']:.0f} s"
                   f"{' (cached recording)' if rec.get('cached') else ''}; rendering and encoding "
                   f"{r['render_s']:.0f} s, `jaxfoam track` {r['track_s']:.0f} s."), ""]
