@@ -40,7 +40,11 @@ WORK = ROOT / "out" / NAME  # recordings (MBs) and fit logs (tens of MB): kept o
 IOU_GOAL = 0.98  # issue 34 item 5: tracked against exact masks, every frame
 # Tracker options beyond the empty-scene photo: white foam (its shadow is no foam), no closing (no cracks
 # to bridge; it rounds off the air pocket under the landed drop), half-contrast edges (the shaded rim).
-POLARITY, CLOSE, EDGES = "brighter", 0, "half"
+TRACK_OPTIONS = ["--polarity", "brighter", "--close", 0, "--edges", "half"]
+# The same video tracked with fewer of those options (all take the empty-scene photo as background).
+ABLATION = (("(defaults)", []), ("--polarity brighter", ["--polarity", "brighter"]),
+            ("--polarity brighter --close 0", ["--polarity", "brighter", "--close", 0]))
+OTHER_RIMS = (0.004,)  # m: a rounder foam edge, its rim darker over more of a pixel
 
 
 @dataclasses.dataclass(frozen=True)
@@ -140,12 +144,31 @@ def film(vc, quick, folder, progress=print):
         K.write_video(video_path, frames, vc.fps)
         K.write_png(empty_path, empty)
     scene_path = SCENES_DIR / f"{vc.case}.json"
+
+    def track(video, empty_photo, out, options):
+        jaxfoam_cli(["track", video, "--out", out, "--scene", scene_path, "--pixel-size", vc.pixel_size,
+                     "--origin", cam.origin[0], cam.origin[1], "--background", empty_photo,
+                     "--downsample", vc.downsample] + options)
+        return read_silhouettes(out)
+
+    exact = read_silhouettes(exact_path)
     with C.Timer() as t_track:
-        jaxfoam_cli(["track", video_path, "--out", tracked_path, "--scene", scene_path, "--pixel-size",
-                     vc.pixel_size, "--origin", cam.origin[0], cam.origin[1], "--background", empty_path,
-                     "--polarity", POLARITY, "--close", CLOSE, "--edges", EDGES, "--downsample", vc.downsample])
-    tracked, exact = read_silhouettes(tracked_path), read_silhouettes(exact_path)
+        tracked = track(video_path, empty_path, tracked_path, TRACK_OPTIONS)
     ious = iou_per_frame(tracked, exact)
+    ablation = []
+    if not quick:  # what each tracker option does on this video, and a rounder rim (another look)
+        WORK.mkdir(parents=True, exist_ok=True)
+        for label, opts in ABLATION:
+            a = iou_per_frame(track(video_path, empty_path, WORK / f"{vc.stem}_ablation.h5", opts), exact)
+            ablation.append([label, "this video", f"{a.min():.4f}", f"{a.mean():.4f}"])
+        ablation.append([" ".join(map(str, TRACK_OPTIONS)) + " (the result above)", "this video",
+                         f"{ious.min():.4f}", f"{ious.mean():.4f}"])
+        for rim in OTHER_RIMS:
+            f2, e2 = K.render_video(rec["x"], times, rec["spacing"], cam, scene, K.Look(seed=vc.seed, rim=rim))
+            v2, p2 = K.write_video(WORK / f"{vc.stem}_rim.mp4", f2, vc.fps), K.write_png(WORK / f"{vc.stem}_rim.png", e2)
+            a = iou_per_frame(track(v2, p2, WORK / f"{vc.stem}_rim.h5", TRACK_OPTIONS), exact)
+            ablation.append([" ".join(map(str, TRACK_OPTIONS)), (f"rim radius {rim * 1e3:g} mm (this video: "
+                             f"{look.rim * 1e3:g} mm)"), f"{a.min():.4f}", f"{a.mean():.4f}"])
     area = np.asarray(tracked.masks, float).sum(axis=(1, 2)) - np.asarray(exact.masks, float).sum(axis=(1, 2))
     progress(f"{vc.stem}: {len(times)} frames, IoU min {ious.min():.4f} mean {ious.mean():.4f}")
     return dict(vc=vc, frames=len(times), shape=cam.shape, times=times, ious=ious, area_diff=area,
@@ -153,7 +176,7 @@ def film(vc, quick, folder, progress=print):
                 tracked_times=np.asarray(tracked.times), video=video_path, exact=exact_path, tracked=tracked_path,
                 size_kB=video_path.stat().st_size / 1024, rec=rec, render_s=t_render.seconds, track_s=t_track.seconds,
                 frame=frames[len(frames) // 2], mask=np.asarray(tracked.masks[len(frames) // 2]),
-                exact_mask=np.asarray(exact.masks[len(frames) // 2]), truth=params)
+                exact_mask=np.asarray(exact.masks[len(frames) // 2]), truth=params, ablation=ablation)
 
 
 def fit(data_path, folder, progress=print):
@@ -234,6 +257,8 @@ def main(argv=None) -> int:
                   f"minus exact foam area: {np.mean(r['area_diff']):+.1f} pixels per frame on average (range "
                   f"{np.min(r['area_diff']):+.0f} to {np.max(r['area_diff']):+.0f}; the exact masks hold "
                   f"{np.mean(r['exact_area']):.0f} pixels)."), "",
+                 *([C.md_table(["tracker options (besides the empty-scene photo)", "video", "IoU min", "IoU mean"],
+                               r["ablation"]), ""] if r["ablation"] else []),
                  (f"Reference run: dx {rec['dx'] * 1e3:.3g} mm, {rec['steps']} steps, {rec['wall_s']:.0f} s"
                   f"{' (cached recording)' if rec.get('cached') else ''}; rendering and encoding "
                   f"{r['render_s']:.0f} s, `jaxfoam track` {r['track_s']:.0f} s."), ""]
