@@ -227,7 +227,11 @@ def picture(results, quick):
         row[1].imshow(both, extent=ext, interpolation="nearest")
         row[1].set_title(f"tracked mask (2.5 mm pixels), IoU {r['ious'][k]:.3f}\nred: tracked only, "
                          f"blue: exact only", fontsize=8)
+        rows, cols = np.nonzero(e)  # zoom on the foam: the picture is about its edge
+        p = vc.pixel_size * vc.downsample * 100
         for ax in row:
+            ax.set_xlim(max(0, cols.min() - 8) * p, min(W // vc.downsample, cols.max() + 9) * p)
+            ax.set_ylim(max(0, m.shape[0] - rows.max() - 9) * p, min(m.shape[0], m.shape[0] - rows.min() + 8) * p)
             ax.set_xlabel("x (cm, from the image's left)")
         row[0].set_ylabel("y (cm)")
     fig.tight_layout()
