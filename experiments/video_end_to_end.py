@@ -192,6 +192,15 @@ def fit(data_path, folder, progress=print):
     return json.loads(out.read_text()), wall
 
 
+def exact_loss_at(data_path, params):
+    """The default fit's loss on a silhouette file at the material parameters `params` (its own grid)."""
+    from fitting import FitSettings, build_problem, read_silhouettes
+
+    problem = build_problem(read_silhouettes(data_path), FitSettings())
+    return float(problem.loss(problem.transform.to_unconstrained({n: float(params[n])
+                                                                   for n in problem.transform.names})))
+
+
 def fit_rows(exact_fit, tracked_fit, truth):
     """Table rows: per parameter the truth, both fits, the exact fit's intervals, inside or not."""
     rows, inside = [], {}
@@ -270,6 +279,7 @@ def main(argv=None) -> int:
             exact_fit, _ = fit(r["exact"], folder)
             tracked_fit, _ = fit(r["tracked"], folder)
             rows, inside = fit_rows(exact_fit, tracked_fit, r["truth"])
+            cross = exact_loss_at(r["exact"], tracked_fit["params"])
             n_in = sum(v[0] for v in inside.values())
             n_loc = sum(v[1] for v in inside.values())
             lines += [(f"Fits (`jaxfoam fit DATA --out FIT.json`, every default): tracked-fit value inside the "
@@ -278,7 +288,9 @@ def main(argv=None) -> int:
                       f"reproduces the data {exact_fit['reproduces_data']}, loss {exact_fit['loss']:.4g}, "
                       f"{exact_fit['wall_time'] / 60:.1f} min; tracked fit: reproduces the data "
                       f"{tracked_fit['reproduces_data']}, loss {tracked_fit['loss']:.4g}, "
-                      f"{tracked_fit['wall_time'] / 60:.1f} min."), "",
+                      f"{tracked_fit['wall_time'] / 60:.1f} min. The exact masks' loss at the tracked fit's "
+                      f"parameters: {cross:.4g} (at the exact fit's: {exact_fit['loss']:.4g}; at the truth: "
+                      f"{exact_loss_at(r['exact'], r['truth']):.4g})."), "",
                       C.md_table(["param", "truth", "exact fit", "exact 95% interval", "exact interval_local",
                                   "tracked fit", "tracked / exact - 1", "inside interval", "inside interval_local"],
                                  rows)]
