@@ -30,7 +30,7 @@ from .problem import build_problem
 from .driver import calibrate, default_log_path
 from .plots import plot_loss, plot_overlay
 from .synth import parse_params, synthesize
-from .track import BACKGROUNDS, CLOSE_RADIUS, OPEN_RADIUS, PLATE_MARGIN, track_video
+from .track import BACKGROUNDS, CLOSE_RADIUS, EDGES, OPEN_RADIUS, PLATE_MARGIN, POLARITIES, track_video
 from .video import IMAGE_EXTENSIONS, average_pool
 
 
@@ -335,6 +335,12 @@ def add_track_parser(subparsers) -> argparse.ArgumentParser:
     ap.add_argument("--threshold", type=float_in(0.0, 1.0, lo_open=True, hi_open=True), default=None,
                     help="foreground threshold in (0, 1) of full intensity (default: Otsu's method)")
     ap.add_argument("--invert", action="store_true", help="with --background none: foam darker than the background")
+    ap.add_argument("--polarity", choices=POLARITIES, default="any",
+                    help="with a background: any difference (default), or only pixels brighter (white foam: "
+                         "its shadow is not foam) or darker than the background")
+    ap.add_argument("--edges", choices=EDGES, default="threshold",
+                    help="threshold (default): the thresholded difference as it is; half: edge pixels are foam "
+                         "when at least halfway from the local background to the local foam level")
     ap.add_argument("--fps", type=positive_float, default=None, help="frame rate (default: from the file)")
     ap.add_argument("--t0", type=float_in(0.0), default=0.0, help="time of the first frame since the scene's start, s")
     ap.add_argument("--every", type=int_at_least(1), default=1, help="keep one frame in EVERY")
@@ -378,7 +384,8 @@ def run_track(args) -> int:
         scale = 65535.0 if img.dtype == np.uint16 else 255.0 if img.dtype.kind in "ui" else 1.0
         background = average_pool(img, args.downsample) / scale
     data = track_video(args.video, args.pixel_size, args.origin, args.scene, background=background,
-                       threshold=args.threshold, invert=args.invert, fps=args.fps, t0=args.t0, every=args.every,
+                       threshold=args.threshold, invert=args.invert, polarity=args.polarity, edges=args.edges,
+                       fps=args.fps, t0=args.t0, every=args.every,
                        downsample=args.downsample, max_frames=args.max_frames, open_radius=args.open,
                        close_radius=args.close, holes=not args.keep_holes,
                        plate_margin=None if args.plate_margin < 0 else args.plate_margin, progress=print)

@@ -5,11 +5,17 @@ Pipeline (numpy only; frames come from imageio):
 1. read the frames (a video or GIF file, or a directory of images) and the frame rate;
 2. optional average-pool downsampling (a phone video's 1080p is more than a fit needs);
 3. foreground: the colour difference to a static background (the per-pixel median of the frames,
-   the first frame, or a photo of the empty scene), or, with background 'none', the brightness
-   (foam is white; `invert` for dark foam); thresholded at a given value or by Otsu's method;
-4. clean-up: a morphological opening (removes specks) then closing (bridges cracks), disk-shaped;
-5. the largest 8-connected component, with its holes filled (foam is opaque);
-6. pixels under a plate of the scene (its footprint at each frame's time, dilated by a margin) get
+   the first frame, or a photo of the empty scene; `polarity` 'brighter' counts only pixels brighter
+   than the background, so a shadow the foam casts is not foam), or, with background 'none', the
+   brightness (foam is white; `invert` for dark foam); thresholded at a given value or by Otsu's method;
+4. optionally, edges at half contrast (`edges` 'half'): a global threshold puts the edge where the
+   difference crosses it, too far in where the foam's rim is shaded darker than its middle and too far
+   out where it is brighter. Within EDGE_BAND pixels of the thresholded edge, a pixel is foam when its
+   difference is at least halfway from the local background level to the local foam level (means over
+   EDGE_WINDOW pixels around it): a pixel is foam when more than half of it is;
+5. clean-up: a morphological opening (removes specks) then closing (bridges cracks), disk-shaped;
+6. the largest 8-connected component, with its holes filled (foam is opaque);
+7. pixels under a plate of the scene (its footprint at each frame's time, dilated by a margin) get
    weight 0 and mask 0: a moving plate shows up in a background difference and must be ignored.
 
 Times are t0 + k / fps. The camera is orthographic: the user gives the pixel size (m) and the world
@@ -27,6 +33,12 @@ from .io import Camera, Silhouettes, plate_footprint, validate
 from .video import read_frames
 
 BACKGROUNDS = ("median", "first", "none")
+POLARITIES = ("any", "brighter", "darker")
+EDGES = ("half", "threshold")
+# Half-contrast edges: the band (pixels each side of the thresholded edge) that is re-decided, and the
+# half-width of the window of the local foam and background means; 3 reaches past a shaded rim.
+EDGE_BAND = 2
+EDGE_WINDOW = 3
 # Frames used for the median background at most (evenly spread): the median of 64 frames is as
 # good as that of all when the foam covers each pixel less than half the time, at bounded memory.
 MEDIAN_FRAMES = 64
@@ -175,13 +187,39 @@ def otsu_threshold(values: np.ndarray, bins: int = OTSU_BINS) -> float:
 # ----------------------------------------------------------------------------------------------
 
 def foreground(frames: np.ndarray, background: str | np.ndarray = "median", threshold: float | None = None,
-               invert: bool = False) -> tuple[np.ndarray, float]:
+               invert: bool = False, polarity: str = "any", edges: str = "threshold") -> tuple[np.ndarray, float]:
     """Raw foreground masks (T, H, W) bool and the threshold used.
 
     frames: (T, H, W, C) in [0, 1]. background: 'median' (per-pixel median of up to MEDIAN_FRAMES
     frames), 'first', an image (H, W, C) in [0, 1] of the empty scene, or 'none' (threshold the
     brightness: foam brighter than the threshold, or darker with `invert`). threshold: None for Otsu.
+    polarity (with a background): 'any' (the largest absolute channel difference), 'brighter' or
+    'darker' (the largest signed one, 0 for the other sign). edges: 'half' (see `half_contrast_edges`)
+    or 'threshold' (the thresholded score as it is).
     """
+    if polarity not in POLARITIES:
+        raise ValueError(f"polarity must be one of {POLARITIES}, got {polarity!r}")
+    if edges not in EDGES:
+        raise ValueError(f"edges must be one of {EDGES}, got {edges!r}")
+    score = _score(frames, background, invert, polarity)
+    if threshold is None:
+        threshold = otsu_threshold(score)
+    elif not 0.0 < threshold < 1.0:
+        raise ValueError(f"threshold must lie in (0, 1) (a fraction of full intensity), got {threshold}")
+    raw = score > threshold
+    if edges == "half":
+        raw = np.stack([half_contrast_edges(score[t], raw[t]) for t in range(len(raw))])
+    return raw, float(threshold)
+
+
+def _signed(diff: np.ndarray, polarity: str) -> np.ndarray:
+    if polarity == "any":
+        return np.abs(diff).max(axis=-1)
+    return np.clip(diff if polarity == "brighter" else -diff, 0.0, None).max(axis=-1)
+
+
+def _score(frames, background, invert, polarity):
+    """The foreground score (T, H, W) in [0, 1] of `foreground`."""
     if isinstance(background, str):
         if background not in BACKGROUNDS:
             raise ValueError(f"background must be one of {BACKGROUNDS} or an image, got {background!r}")
@@ -195,19 +233,44 @@ def foreground(frames: np.ndarray, background: str | np.ndarray = "median", thre
             else:
                 pick = np.unique(np.round(np.linspace(0, len(frames) - 1, min(len(frames), MEDIAN_FRAMES))).astype(int))
                 bg = np.median(frames[pick], axis=0)
-            score = np.abs(frames - bg[None]).max(axis=-1)
+            score = _signed(frames - bg[None], polarity)
     else:
         bg = np.asarray(background, np.float32)
         if bg.ndim == 2:
             bg = bg[:, :, None]
         if bg.shape[:2] != frames.shape[1:3]:
             raise ValueError(f"background image has shape {bg.shape[:2]}, the frames {frames.shape[1:3]}")
-        score = np.abs(frames - bg[None]).max(axis=-1)
-    if threshold is None:
-        threshold = otsu_threshold(score)
-    elif not 0.0 < threshold < 1.0:
-        raise ValueError(f"threshold must lie in (0, 1) (a fraction of full intensity), got {threshold}")
-    return score > threshold, float(threshold)
+        score = _signed(frames - bg[None], polarity)
+    return score
+
+
+def _box_sum(img: np.ndarray, r: int) -> np.ndarray:
+    """Sum over the (2r+1)^2 window about each pixel (zeros beyond the image), by cumulative sums."""
+    H, W = img.shape
+    c = np.zeros((H + 2 * r + 1, W + 2 * r + 1))
+    c[1:, 1:] = np.cumsum(np.cumsum(np.pad(img.astype(float), r), axis=0), axis=1)
+    k = 2 * r + 1
+    return c[k:, k:] - c[:-k, k:] - c[k:, :-k] + c[:-k, :-k]
+
+
+def half_contrast_edges(score: np.ndarray, mask: np.ndarray, band: int = EDGE_BAND,
+                        window: int = EDGE_WINDOW) -> np.ndarray:
+    """Re-decide the pixels within `band` pixels of the edge of `mask` (bool (H, W), the thresholded
+    `score` (H, W)): foam where the score is at least the mean of the local foam level (score over the
+    mask eroded by `band`, in a window of half-width `window` + `band`) and the local background level
+    (score outside the mask grown by `band`). A pixel with no level of either kind nearby keeps its value."""
+    m = np.asarray(mask, bool)
+    if not m.any() or m.all():
+        return m.copy()
+    inner, outer = erode(m, band), ~dilate(m, band)
+    r = int(window) + int(band)
+    n_in, n_out = _box_sum(inner, r), _box_sum(outer, r)
+    level_in = _box_sum(np.where(inner, score, 0.0), r) / np.maximum(n_in, 1)
+    level_out = _box_sum(np.where(outer, score, 0.0), r) / np.maximum(n_out, 1)
+    decide = ~inner & ~outer & (n_in > 0) & (n_out > 0)
+    out = m.copy()
+    out[decide] = score[decide] >= 0.5 * (level_in[decide] + level_out[decide])
+    return out
 
 
 def clean_mask(mask: np.ndarray, open_radius: int = OPEN_RADIUS, close_radius: int = CLOSE_RADIUS,
@@ -219,7 +282,8 @@ def clean_mask(mask: np.ndarray, open_radius: int = OPEN_RADIUS, close_radius: i
 
 
 def track_video(video: str | os.PathLike, pixel_size: float, origin, scene, *, background: str | np.ndarray = "median",
-                threshold: float | None = None, invert: bool = False, fps: float | None = None, t0: float = 0.0,
+                threshold: float | None = None, invert: bool = False, polarity: str = "any", edges: str = "threshold",
+                fps: float | None = None, t0: float = 0.0,
                 every: int = 1, downsample: int = 1, max_frames: int | None = None, open_radius: int = OPEN_RADIUS,
                 close_radius: int = CLOSE_RADIUS, holes: bool = True, plate_margin: int | None = PLATE_MARGIN,
                 progress=None) -> Silhouettes:
@@ -229,7 +293,8 @@ def track_video(video: str | os.PathLike, pixel_size: float, origin, scene, *, b
       video: video/GIF file or image directory.  pixel_size: m per pixel of the source video.
       origin: (x0, y0), m: world position of the source image's bottom-left corner.
       scene: the scene description (path, JSON text or dict) stored with the data.
-      background, threshold, invert: see `foreground`.  fps: frame rate override.  t0: time of the
+      background, threshold, invert, polarity, edges: see `foreground`.  fps: frame rate override.
+      t0: time of the
       first frame since the start of the scene, s.  every, downsample, max_frames: see `read_frames`.
       open_radius, close_radius, holes: see `clean_mask`.  plate_margin: dilation of the plates'
       footprint, pixels (None: do not mask plates).
@@ -239,7 +304,7 @@ def track_video(video: str | os.PathLike, pixel_size: float, origin, scene, *, b
     frames, fps = read_frames(video, fps=fps, every=every, downsample=downsample, max_frames=max_frames)
     T, H, W = frames.shape[:3]
     say(f"read {T} frames of {H}x{W} pixels at {fps:g} fps")
-    raw, thr = foreground(frames, background, threshold, invert)
+    raw, thr = foreground(frames, background, threshold, invert, polarity, edges)
     say(f"foreground threshold {thr:.3f}")
     masks = np.stack([clean_mask(raw[t], open_radius, close_radius, holes) for t in range(T)]).astype(np.uint8)
     camera = Camera(pixel_size=float(pixel_size) * downsample, origin=tuple(float(v) for v in origin))
@@ -253,7 +318,8 @@ def track_video(video: str | os.PathLike, pixel_size: float, origin, scene, *, b
     source = json.dumps(dict(generator="jaxfoam track", video=os.path.basename(os.fspath(video)), fps=fps,
                              every=every, downsample=downsample, threshold=thr,
                              background=background if isinstance(background, str) else "image",
-                             invert=invert, open_radius=open_radius, close_radius=close_radius, holes=holes,
+                             invert=invert, polarity=polarity, edges=edges, open_radius=open_radius,
+                             close_radius=close_radius, holes=holes,
                              plate_margin=plate_margin))
     empty = [t for t in range(T) if not masks[t].any()]
     if 0 in empty and parsed.initial_shape.get("type") == "first_mask":

@@ -72,20 +72,26 @@ def fit_dx(scene):
     return float(np.max(scene.hi - scene.lo)) / FIT_CELLS[scene.dim]
 
 
-def simulate_case(case, params, seed=0, refine=None, progress=print):
-    """Run one case; returns (masks (T, H, W), times (T,), weights, camera, scene, source dict)."""
+def setup_case(case, params, seed=0, refine=None):
+    """The run of one case before its first step: (scene, Simulation, dx m, particle spacing m, grid shift
+    (d,) cells). The seed fixes the grid offset and the sampling, so a case's run is the same each time."""
     scene = RefScene(str(SCENES_DIR / f"{case.scene}.json"))
     d = scene.dim
     dx = fit_dx(scene) / (case.refine if refine is None else float(refine))
-    ppc = PPC[d]
     rng = np.random.default_rng([case.seed, seed])
     shift = rng.random(d)  # node lattice offset, cells
     grid = Grid.covering(scene.lo, scene.hi, dx, shift=shift)
-    parts = sample(scene, dx, ppc, seed=int(rng.integers(1 << 31)))
+    parts = sample(scene, dx, PPC[d], seed=int(rng.integers(1 << 31)))
     mat = dict(params, kappa=scene.kappa, rho=scene.density)
     sim = Simulation(parts, grid, mat, scene.boundaries, scene.gravity, cfl=CFL)
+    return scene, sim, dx, particle_spacing(dx, PPC[d], d), shift
+
+
+def simulate_case(case, params, seed=0, refine=None, progress=print):
+    """Run one case; returns (masks (T, H, W), times (T,), weights, camera, scene, source dict)."""
+    scene, sim, dx, spacing, shift = setup_case(case, params, seed, refine)
+    parts, ppc = sim.p, PPC[scene.dim]
     camera = Camera.covering(scene.lo, scene.hi, PIXEL_SIZE)
-    spacing = particle_spacing(dx, ppc, d)
     times = np.linspace(0.0, case.duration, case.frames)
     masks = np.zeros((len(times),) + camera.shape, np.uint8)
     weights = np.ones(masks.shape, np.float32)
