@@ -108,7 +108,8 @@ def volume_field(x: np.ndarray, vol: np.ndarray, spacing: float, cell: float | N
     axes = [np.minimum(np.arange(m), m - np.arange(m)) * cell for m in shape]  # periodic distance, m
     r = np.sqrt(sum(a ** 2 for a in np.meshgrid(*axes, indexing="ij", sparse=True)))
     kernel = cubic_spline(r / h) * (KERNEL_NORM[d] / h ** d)  # 1/m^d
-    values = np.fft.irfftn(np.fft.rfftn(deposit.reshape(shape)) * np.fft.rfftn(kernel), s=shape)
+    axes = tuple(range(d))
+    values = np.fft.irfftn(np.fft.rfftn(deposit.reshape(shape)) * np.fft.rfftn(kernel), s=shape, axes=axes)
     return VolumeField(values=values, origin=origin, cell=cell)
 
 
