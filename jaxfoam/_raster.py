@@ -325,7 +325,7 @@ def _interpolate(field, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
 
 def _blur(a: np.ndarray, sigma: float) -> np.ndarray:
     """A Gaussian blur of an image (H, W) with standard deviation sigma pixels (FFT, zero-padded)."""
-    pad = int(math.ceil(3.0 * sigma))
+    pad = math.ceil(3.0 * sigma)
     b = np.pad(a, pad)
     fy, fx = np.fft.fftfreq(b.shape[0]), np.fft.rfftfreq(b.shape[1])
     g = np.exp(-2.0 * (math.pi * sigma) ** 2 * (fy[:, None] ** 2 + fx[None, :] ** 2))

@@ -105,11 +105,11 @@ def volume_field(x: np.ndarray, vol: np.ndarray, spacing: float, cell: float | N
         w = np.prod(np.where(c == 1, frac, 1.0 - frac), axis=1)
         idx = np.ravel_multi_index(tuple((base + c).T), shape)
         deposit += np.bincount(idx, weights=vol * w, minlength=deposit.size)
-    axes = [np.minimum(np.arange(m), m - np.arange(m)) * cell for m in shape]  # periodic distance, m
-    r = np.sqrt(sum(a ** 2 for a in np.meshgrid(*axes, indexing="ij", sparse=True)))
+    dist = [np.minimum(np.arange(m), m - np.arange(m)) * cell for m in shape]  # periodic distance, m
+    r = np.sqrt(sum(a ** 2 for a in np.meshgrid(*dist, indexing="ij", sparse=True)))
     kernel = cubic_spline(r / h) * (KERNEL_NORM[d] / h ** d)  # 1/m^d
-    axes = tuple(range(d))
-    values = np.fft.irfftn(np.fft.rfftn(deposit.reshape(shape)) * np.fft.rfftn(kernel), s=shape, axes=axes)
+    values = np.fft.irfftn(np.fft.rfftn(deposit.reshape(shape)) * np.fft.rfftn(kernel), s=shape,
+                           axes=tuple(range(d)))
     return VolumeField(values=values, origin=origin, cell=cell)
 
 

@@ -314,7 +314,7 @@ def _surface_title(traj, view) -> str:
 def _with_scale_bar(rgb: np.ndarray, view) -> np.ndarray:
     """The panel with a black scale bar (view.scale_bar() m) at its lower left."""
     out = rgb.copy()
-    n = int(round(view.scale_bar() * view.scale))
+    n = round(view.scale_bar() * view.scale)
     y = view.height - 10
     out[y - 2:y + 1, 10:10 + n] = 0
     return out
@@ -384,11 +384,11 @@ def render_surface_video(traj, out_mp4, fps: int = 20, camera=None, width_px: in
     canvas = FigureCanvasAgg(fig)
     image = fig.figimage(np.zeros((view.height, view.width, 3), np.uint8), origin="upper")
     label = fig.text(0.02, 0.97, "", ha="left", va="top", fontsize=9)
-    with ffmpeg_subprocess(), atomic_output(out_mp4) as tmp:
-        with imageio.get_writer(tmp, fps=fps, codec="libx264", quality=7, macro_block_size=16) as writer:
-            for k in idx:
-                image.set_data(_with_scale_bar(view.frame(int(k))[0], view))
-                label.set_text(f"t = {float(traj.times[k]):.3f} s   (bar: {view.scale_bar() * 100:g} cm)")
-                canvas.draw()
-                writer.append_data(np.asarray(canvas.buffer_rgba())[:, :, :3])
+    with ffmpeg_subprocess(), atomic_output(out_mp4) as tmp, \
+            imageio.get_writer(tmp, fps=fps, codec="libx264", quality=7, macro_block_size=16) as writer:
+        for k in idx:
+            image.set_data(_with_scale_bar(view.frame(int(k))[0], view))
+            label.set_text(f"t = {float(traj.times[k]):.3f} s   (bar: {view.scale_bar() * 100:g} cm)")
+            canvas.draw()
+            writer.append_data(np.asarray(canvas.buffer_rgba())[:, :, :3])
     return os.fspath(out_mp4)

@@ -8,18 +8,15 @@ extra is named; `render --surface` writes a picture of the stated size whose foa
 """
 import json
 import re
-import sys
 
 import numpy as np
 import pytest
+from helpers import scene
 
 import jaxfoam
 from jaxfoam import _surface, cli
 from jaxfoam.export import export_trajectory, parse_frames
 from jaxfoam.guards import EXPORT_HINT, require_extra
-
-sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parents[1]))
-from helpers import scene  # noqa: E402
 
 trimesh = pytest.importorskip("trimesh")
 # The zoo's slump domain starts at -0.12 m; at its CLI default dx (0.24 m / 32 cells) and 8 particles
@@ -40,17 +37,18 @@ def block_trajectory(dim, frames=2, dtype=np.float64, shift=0.01):
     x[:, :, 1] += shift * np.arange(frames)[:, None]
     active = np.ones((frames, n), bool)
     active[1:, :5] = False  # slots that hold no material point are not exported
-    f = dict(x=x.astype(dtype), v=rng.normal(size=(frames, n, dim)).astype(dtype),
-             gamma_dot=rng.exponential(size=(frames, n)).astype(dtype), s=rng.uniform(0, 60, (frames, n)).astype(dtype),
-             J=np.ones((frames, n), dtype), active=active)
+    f = {"x": x.astype(dtype), "v": rng.normal(size=(frames, n, dim)).astype(dtype),
+         "gamma_dot": rng.exponential(size=(frames, n)).astype(dtype),
+         "s": rng.uniform(0, 60, (frames, n)).astype(dtype), "J": np.ones((frames, n), dtype), "active": active}
     params = jaxfoam.Params(mu=200.0, kappa=3000.0, sigma_y=40.0, eta=10.0, m=0.5, rho=80.0)
-    return dict(frames=f, times=0.05 * np.arange(frames), params=params, scene=spec, dx=DX[dim], dt=1e-4,
-                substeps=10, ppc=jaxfoam.DEFAULT_PPC[dim])
+    return {"frames": f, "times": 0.05 * np.arange(frames), "params": params, "scene": spec, "dx": DX[dim],
+            "dt": 1e-4, "substeps": 10, "ppc": jaxfoam.DEFAULT_PPC[dim]}
 
 
 def read_ply_by_hand(path):
     """A binary little-endian PLY's first element as a structured array, from its header alone."""
-    raw = open(path, "rb").read()
+    with open(path, "rb") as f:
+        raw = f.read()
     head, body = raw.split(b"end_header\n", 1)
     lines = head.decode().splitlines()
     assert lines[0] == "ply" and lines[1] == "format binary_little_endian 1.0"
@@ -110,7 +108,7 @@ def test_iso_level_puts_a_flat_face_at_the_blocks_face():
     parts = block_trajectory(3)
     x, vol, spacing = _surface.frame_particles(jaxfoam._trajectory.as_saved_trajectory(parts), 0)
     field = _surface.volume_field(x, vol, spacing)
-    lo, hi = BLOCK[3]
+    hi = BLOCK[3][1]
     # The field averaged over the middle of the top face, along y: it crosses ISO_LEVEL at the face.
     xs, ys, zs = (field.nodes(k) for k in range(3))
     mid = np.ix_(np.abs(xs - 0.005) < 0.02, np.arange(len(ys)), np.abs(zs - 0.00125) < 0.01)
@@ -199,8 +197,7 @@ def test_export_command_writes_the_frames_asked_for_and_nothing_half_written(tmp
 def test_render_surface_writes_a_shaded_picture_of_the_stated_size(tmp_path, dim):
     import matplotlib.image as mpimg
 
-    from jaxfoam import _raster
-    from jaxfoam import render
+    from jaxfoam import _raster, render
 
     parts = block_trajectory(dim, frames=2)
     h5 = jaxfoam.save_trajectory(tmp_path / "t.h5", parts)
@@ -221,3 +218,16 @@ def test_render_surface_writes_a_shaded_picture_of_the_stated_size(tmp_path, dim
     grey = panel[foam > 0.99].mean(-1)
     assert (foam > 0.99).sum() > 2000
     assert len(np.unique(np.round(grey))) > 20 and np.ptp(grey) > 40
+
+
+@pytest.mark.filterwarnings("ignore:os.fork:RuntimeWarning")  # the ffmpeg reader's subprocess
+def test_surface_video_has_one_frame_per_trajectory_frame(tmp_path):
+    pytest.importorskip("imageio_ffmpeg")
+    import imageio.v2 as imageio
+
+    from jaxfoam.render import render_surface_video
+
+    out = render_surface_video(block_trajectory(2, frames=3), tmp_path / "v.mp4", fps=10, width_px=200)
+    with imageio.get_reader(out) as r:
+        frames = [f for f in r]  # noqa: C416 (the reader reports an infinite length, which list() uses)
+    assert len(frames) == 3 and frames[0].shape[1] == 208 and frames[0].shape[0] % 16 == 0
