@@ -229,5 +229,5 @@ def test_surface_video_has_one_frame_per_trajectory_frame(tmp_path):
 
     out = render_surface_video(block_trajectory(2, frames=3), tmp_path / "v.mp4", fps=10, width_px=200)
     with imageio.get_reader(out) as r:
-        frames = [f for f in r]  # noqa: C416 (the reader reports an infinite length, which list() uses)
+        frames = [f for f in r]  # the reader reports an infinite length, which list() would use
     assert len(frames) == 3 and frames[0].shape[1] == 208 and frames[0].shape[0] % 16 == 0
