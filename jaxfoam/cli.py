@@ -1,4 +1,4 @@
-"""Command line: `jaxfoam simulate`, `jaxfoam render`, `jaxfoam demo`, and the calibration package's
+"""Command line: `jaxfoam simulate`, `jaxfoam render`, `jaxfoam demo`, `jaxfoam export`, and the calibration package's
 `jaxfoam synth`, `jaxfoam track` and `jaxfoam fit` (parsers in `fitting.cli`, imported only when needed).
 
 Each subcommand is one `add_<name>_parser(subparsers)` function that registers its arguments and one
@@ -310,7 +310,24 @@ def add_render_parser(sub):
                    help="colour by plastic strain rate (1/s, log) or deviatoric stress (Pa)")
     p.add_argument("--panels", type=int_at_least(1), default=8, help="frames on the contact sheet (default 8)")
     p.add_argument("--fps", type=positive_float, default=20.0, help="video frames per second (default 20)")
+    p.add_argument("--surface", action="store_true",
+                   help="shaded surface renders instead of particles (3D: lit mesh, floor, plates; 2D: lit "
+                        "outline fill); needs the export extra")
+    p.add_argument("--camera", type=camera_angles, default=None,
+                   help="3D --surface camera: AZIMUTH,ELEVATION in degrees (default 30,25; 0,0 looks along -z)")
     p.set_defaults(func=cmd_render)
+
+
+def camera_angles(text):
+    """AZIMUTH,ELEVATION (deg): azimuth any finite angle, elevation in [-90, 90]."""
+    parts = text.split(",")
+    try:
+        az, el = (float(v) for v in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be AZIMUTH,ELEVATION in degrees (e.g. 30,25), got {text!r}") from None
+    if not (math.isfinite(az) and math.isfinite(el) and -90.0 <= el <= 90.0):
+        raise argparse.ArgumentTypeError(f"must be a finite azimuth and an elevation in [-90, 90] deg, got {text!r}")
+    return (az, el)
 
 
 # Picture and video formats the renderer writes (matplotlib's and ffmpeg's, chosen by the suffix).
@@ -326,22 +343,69 @@ def _check_suffix(path, option, allowed):
 
 
 def cmd_render(args) -> int:
-    from .guards import check_output, require_extra
+    from .guards import EXPORT_HINT, check_output, require_extra
     from ._trajectory import load_trajectory
-    from .render import render_contact_sheet, render_video
+    from .render import render_contact_sheet, render_surface_sheet, render_surface_video, render_video
 
     require_extra("jaxfoam render", "matplotlib", *(("imageio", "imageio_ffmpeg") if args.mp4 else ()))
+    if args.surface:
+        require_extra("jaxfoam render --surface", "skimage", hint=EXPORT_HINT)
+    elif args.camera is not None:
+        raise CLIError("--camera sets the view of --surface renders; add --surface")
     traj = load_trajectory(args.trajectory)
     check_output(args.out, "--out", {"the trajectory": args.trajectory, "--mp4": args.mp4})
     _check_suffix(args.out, "--out", PICTURE_SUFFIXES)
     if args.mp4:
         check_output(args.mp4, "--mp4", {"the trajectory": args.trajectory})
         _check_suffix(args.mp4, "--mp4", VIDEO_SUFFIXES)
-    render_contact_sheet(traj, args.out, n_frames=args.panels, color=args.color)
+    if args.surface:
+        render_surface_sheet(traj, args.out, n_frames=args.panels, camera=args.camera)
+    else:
+        render_contact_sheet(traj, args.out, n_frames=args.panels, color=args.color)
     print(f"wrote {args.out}")
     if args.mp4:
-        render_video(traj, args.mp4, fps=args.fps, color=args.color)
+        if args.surface:
+            render_surface_video(traj, args.mp4, fps=args.fps, camera=args.camera)
+        else:
+            render_video(traj, args.mp4, fps=args.fps, color=args.color)
         print(f"wrote {args.mp4}")
+    return 0
+
+
+def add_export_parser(sub):
+    from .export import FORMATS
+
+    p = sub.add_parser("export", help="write frames as particle clouds (PLY) and surfaces (meshes, outlines)",
+                       description="Per frame: the particles with their fields as PLY, and the material's surface "
+                                   "(3D: a closed mesh, PLY or OBJ; 2D: closed outline loops, PLY, OBJ, SVG or "
+                                   "CSV), plus export.json listing the files. Needs the export extra.")
+    p.add_argument("trajectory", help="trajectory file (.h5) from `jaxfoam simulate`")
+    p.add_argument("--out", required=True, help="output folder (created)")
+    p.add_argument("--format", default="ply", help=f"surface format: {', '.join(FORMATS)} (svg and csv: 2D only; "
+                                                   "default ply); particle clouds are always PLY")
+    p.add_argument("--frames", default="all", help="frames to export: all (default), or indices and ranges, "
+                                                   "e.g. 0,5,-1 or 0:24:4")
+    p.add_argument("--no-particles", dest="particles", action="store_false", help="do not write particle clouds")
+    p.add_argument("--no-surface", dest="surface", action="store_false", help="do not write surfaces")
+    p.set_defaults(func=cmd_export)
+
+
+def cmd_export(args) -> int:
+    from .export import check_folder, check_format, export_trajectory, parse_frames
+    from .guards import EXPORT_HINT, require_extra
+    from ._trajectory import load_trajectory
+
+    if not (args.particles or args.surface):
+        raise CLIError("--no-particles with --no-surface leaves nothing to export")
+    needs = (("skimage",) if args.surface else ()) + (("plyfile",) if args.particles or args.format == "ply" else ())
+    require_extra("jaxfoam export", *needs, hint=EXPORT_HINT)
+    traj = load_trajectory(args.trajectory)
+    check_format(args.format, traj.dim, "--format")
+    parse_frames(args.frames, traj.num_frames, "--frames")
+    check_folder(args.out, "--out")
+    manifest = export_trajectory(traj, args.out, fmt=args.format, frames=args.frames, particles=args.particles,
+                                 surface=args.surface)
+    print(f"wrote {len(manifest['frames'])} frames to {args.out} (listed in {args.out}/export.json)")
     return 0
 
 
@@ -396,7 +460,7 @@ def cmd_demo(args) -> int:
     return 0
 
 
-SIMULATOR_COMMANDS = ("simulate", "render", "demo")
+SIMULATOR_COMMANDS = ("simulate", "render", "demo", "export")
 
 
 def build_parser(argv=None) -> argparse.ArgumentParser:
@@ -411,6 +475,7 @@ def build_parser(argv=None) -> argparse.ArgumentParser:
     add_simulate_parser(sub)
     add_render_parser(sub)
     add_demo_parser(sub)
+    add_export_parser(sub)
     command = next((a for a in (sys.argv[1:] if argv is None else argv) if not a.startswith("-")), None)
     if command in SIMULATOR_COMMANDS:
         return parser

@@ -28,6 +28,8 @@ WARN_SUBSTEPS_PER_FRAME = 100_000
 # Simulated spans above this are suspicious for a foam experiment (times in ms instead of s).
 WARN_SPAN_S = 60.0
 VIZ_HINT = "install the viz extra: pip install 'jaxfoam[viz]' (matplotlib, imageio, imageio-ffmpeg)"
+EXPORT_HINT = ("install the export extra: pip install -e '.[export]' (or pip install 'jaxfoam[export]': "
+               "scikit-image, plyfile)")
 
 
 class BudgetError(ValueError):
@@ -183,8 +185,9 @@ def missing_modules(*modules: str) -> list[str]:
     return [m for m in modules if importlib.util.find_spec(m) is None]
 
 
-def require_extra(what: str, *modules: str) -> None:
-    """Raise ImportError naming the viz extra when any of `modules` is not installed."""
+def require_extra(what: str, *modules: str, hint: str = VIZ_HINT) -> None:
+    """Raise ImportError naming the extra (`hint`: VIZ_HINT or EXPORT_HINT) when any of `modules` is
+    not installed."""
     missing = missing_modules(*modules)
     if missing:
-        raise ImportError(f"{what} needs {', '.join(missing)}: {VIZ_HINT}")
+        raise ImportError(f"{what} needs {', '.join(missing)}: {hint}")

@@ -282,3 +282,113 @@ def render_video(traj, out_mp4, fps: int = 20, color: str = "gamma_dot", width_p
                 canvas.draw()
                 writer.append_data(np.asarray(canvas.buffer_rgba())[:, :, :3])
     return os.fspath(out_mp4)
+
+
+# Shaded surface pictures (`render --surface`): panel and text bands of the sheet, pixels.
+SURFACE_PANEL_PX = 400
+HEADER_PX = 52
+TITLE_PX = 22
+GAP_PX = 8
+
+
+def _surface_view(traj, indices, width_px, camera, multiple=1):
+    from . import _raster
+    from ._surface import require_skimage
+
+    require_skimage()
+    if camera is not None and not isinstance(camera, _raster.Camera):
+        camera = _raster.Camera(*camera)
+    return _raster.View(traj, indices, width_px, camera=camera, multiple=multiple)
+
+
+def _surface_title(traj, view) -> str:
+    p, spec = traj.params, traj.scene.spec
+    cam = (f"; camera azimuth {view.camera.azimuth:g} deg, elevation {view.camera.elevation:g} deg"
+           if traj.dim == 3 else "")
+    return (f"{spec.get('name', traj.scene.kind)} ({traj.dim}D surface){cam}\n$\\mu$ = {p.mu:.4g} Pa, "
+            f"$\\sigma_Y$ = {p.sigma_y:.4g} Pa, $\\eta$ = {p.eta:.4g} Pa s$^m$, m = {p.m:.3g}\n"
+            f"dx = {traj.dx * 1e3:.3g} mm, {int(traj.frames['active'][0].sum())} particles; "
+            f"bar: {view.scale_bar() * 100:g} cm")
+
+
+def _with_scale_bar(rgb: np.ndarray, view) -> np.ndarray:
+    """The panel with a black scale bar (view.scale_bar() m) at its lower left."""
+    out = rgb.copy()
+    n = round(view.scale_bar() * view.scale)
+    y = view.height - 10
+    out[y - 2:y + 1, 10:10 + n] = 0
+    return out
+
+
+def render_surface_sheet(traj, out_png, n_frames: int = 8, camera=None, ncols: int | None = None,
+                         panel_px: int = SURFACE_PANEL_PX, dpi: int = 130) -> str:
+    """Draw a grid of shaded surface renders (3D: lit mesh, floor, plates; 2D: the lit outline fill) to a
+    PNG; returns the path.
+
+    Args: traj (path, SavedTrajectory or Trajectory), out_png, n_frames (panels, evenly spread),
+      camera ((azimuth, elevation) deg or a jaxfoam._raster.Camera; 3D only), ncols (default at most 4),
+      panel_px (panel width, pixels), dpi (text size). The picture is ncols (panel_px + GAP_PX) + GAP_PX
+      pixels wide. Needs the viz and export extras (matplotlib, scikit-image).
+    """
+    _require_matplotlib()
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    traj = as_saved_trajectory(traj)
+    if traj.num_frames == 0:
+        raise ValueError("the trajectory holds no frame to draw")
+    idx = _frame_indices(traj.num_frames, int(n_frames))
+    view = _surface_view(traj, idx, int(panel_px), camera)
+    n = len(idx)
+    ncols = math.ceil(n / math.ceil(n / 4)) if ncols is None else max(1, int(ncols))
+    nrows = math.ceil(n / ncols)
+    cell_w, cell_h = view.width + GAP_PX, view.height + TITLE_PX
+    W, H = ncols * cell_w + GAP_PX, HEADER_PX + nrows * cell_h + GAP_PX
+    fig = Figure(figsize=(W / dpi, H / dpi), dpi=dpi)
+    FigureCanvasAgg(fig)
+    fig.text(0.5, 1 - 6 / H, _surface_title(traj, view), ha="center", va="top", fontsize=7, linespacing=1.1)
+    for i, k in enumerate(idx):
+        r, c = divmod(i, ncols)
+        rgb, _ = view.frame(int(k))
+        if i == 0:
+            rgb = _with_scale_bar(rgb, view)
+        x0, top = GAP_PX + c * cell_w, HEADER_PX + r * cell_h + TITLE_PX
+        fig.figimage(rgb, xo=x0, yo=H - top - view.height, origin="upper")
+        fig.text((x0 + view.width / 2) / W, 1 - (top - 4) / H, f"t = {float(traj.times[k]):.3f} s",
+                 ha="center", va="bottom", fontsize=8)
+    with atomic_output(out_png) as tmp:
+        fig.savefig(tmp, dpi=dpi)
+    return os.fspath(out_png)
+
+
+def render_surface_video(traj, out_mp4, fps: int = 20, camera=None, width_px: int = 800) -> str:
+    """Write every frame's shaded surface render to an MP4 video (H.264); returns the path. The frame
+    size is width_px rounded up to a multiple of 16 by the view's height (also a multiple of 16)."""
+    _require_matplotlib()
+    try:
+        import imageio.v2 as imageio
+        import imageio_ffmpeg  # noqa: F401
+    except ImportError as exc:
+        raise ImportError(f"render_video needs imageio and imageio-ffmpeg: {VIZ_HINT}") from exc
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    if not (isinstance(fps, (int, float)) and fps > 0):
+        raise ValueError(f"fps must be a positive number, got {fps!r}")
+    traj = as_saved_trajectory(traj)
+    if traj.num_frames == 0:
+        raise ValueError("the trajectory holds no frame to draw")
+    idx = np.arange(traj.num_frames)
+    view = _surface_view(traj, idx, int(width_px), camera, multiple=16)
+    fig = Figure(figsize=(view.width / 100, view.height / 100), dpi=100)
+    canvas = FigureCanvasAgg(fig)
+    image = fig.figimage(np.zeros((view.height, view.width, 3), np.uint8), origin="upper")
+    label = fig.text(0.02, 0.97, "", ha="left", va="top", fontsize=9)
+    with ffmpeg_subprocess(), atomic_output(out_mp4) as tmp, \
+            imageio.get_writer(tmp, fps=fps, codec="libx264", quality=7, macro_block_size=16) as writer:
+        for k in idx:
+            image.set_data(_with_scale_bar(view.frame(int(k))[0], view))
+            label.set_text(f"t = {float(traj.times[k]):.3f} s   (bar: {view.scale_bar() * 100:g} cm)")
+            canvas.draw()
+            writer.append_data(np.asarray(canvas.buffer_rgba())[:, :, :3])
+    return os.fspath(out_mp4)
