@@ -5,8 +5,7 @@ the truth (mu -20% to -64%). This experiment measures, for the true parameters o
 what differs between the two grids once the foam has landed:
 
 - the lowest particle at rest above the floor (y = 0), in mm and in grid cells: the floor acts on the
-  grid's node rows (under grid contact the highest lies half a cell below the floor), so where the
-  foam rests depends on how far its weight pushes it into the rows' reach;
+  grid's node rows, and with a node row on the floor the foam rests a fixed fraction of a cell above it;
 - the height of the top, the width and the centroid height of the foam at the end (0.4 s);
 - the mean distance between the silhouette at each frame and the finest run's (2.5 mm), mm: the
   fitter's goodness-of-fit measure (`fitting.silhouette_mismatch`: area of the symmetric
@@ -122,7 +121,7 @@ def cross_contact(truth: dict, kept: dict) -> str:
             for contact in ("grid", "particle") for dx in DXS + (DX_FINE,)]
     return (f"\nBoth contacts against a finer run of each (set 0, friction {fr:g}, dx {DX_FINE * 1e3:g} mm): mean "
             "distance between the silhouettes over the frames, mm. As dx shrinks both contacts converge to the "
-            "same motion (the offset of grid contact's landed foam from the floor shrinks with dx); the question is which is closer on the "
+            "same motion (the gap under grid contact shrinks with dx); the question is which is closer on the "
             "fit's grids.\n\n"
             + C.md_table(["contact", "dx (mm)"] + [f"to {c} contact at {dx * 1e3:g} mm" for c, dx in refs], rows))
 

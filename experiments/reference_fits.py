@@ -30,9 +30,6 @@ from fitting import DEFAULT_BOUNDS, FIT_FIELDS, FitSettings, build_problem, cali
 DATA = Path(__file__).resolve().parent / "reference" / "data"
 NAME = "reference_fits"
 RECORDS = C.RESULTS / NAME
-# The same fits before a default changed (a Coulomb floor's node rows moved half a cell below it,
-# 2026-12-02), kept beside the current ones.
-OLD_RECORDS = C.RESULTS / f"{NAME}_old"
 LOGS = Path(__file__).resolve().parents[1] / "out" / NAME  # fit logs (tens of MB each): kept out of git
 GOAL_RATIO = 1.2  # issue goal: loss at truth / fitted loss on the default grid
 
@@ -117,16 +114,10 @@ def main(argv=None) -> int:
         write_record(out, record)
         print(f"  {record['params']} in {record['wall'] / 60:.1f} min; loss at truth / fit "
               f"{record['loss_truth'] / record['loss']:.2f}", flush=True)
-    def load(d):
-        return [json.loads(p.read_text()) for p in sorted(d.glob("*.json"))] if d.exists() else []
-
+    records = [json.loads(p.read_text()) for p in sorted(RECORDS.glob("*.json"))] if RECORDS.exists() else []
     body = ("The fitter's defaults (`jaxfoam fit data.h5 --out fit.json`) on every file of "
             "experiments/reference/data (the independent reference simulator's silhouettes; "
-            "experiments/reference/data/README.md gives each file's truth and resolution).\n\n"
-            "## Current defaults\n\n" + report(load(RECORDS)))
-    if OLD_RECORDS.exists():
-        body += ("\n## Old defaults\n\nThe same fits with the grid's node rows on a Coulomb floor (before "
-                 "`jaxfoam._grid.FLOOR_ROW_OFFSET`); records in `reference_fits_old/`.\n\n" + report(load(OLD_RECORDS)))
+            "experiments/reference/data/README.md gives each file's truth and resolution).\n\n" + report(records))
     C.write_md(NAME, False, "Default fits on the reference simulator's data", body)
     return 0
 

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
-import math
 
 import jax
 import jax.numpy as jnp
@@ -12,9 +11,6 @@ import numpy as np
 # Grid nodes beyond the domain on each side: the quadratic stencil reaches 1.5 cells past a
 # particle, and the slip walls live on the domain boundary, so 3 cells keep every index in range.
 GRID_PAD = 3
-# A Coulomb floor of grid contact holds landed foam with its lowest particles 0.7-0.8 cells above the
-# highest node row at or below it; with the floor half a cell above that row the foam's edge lies on it.
-FLOOR_ROW_OFFSET = 0.5
 
 
 @dataclasses.dataclass(frozen=True)
@@ -42,19 +38,11 @@ class Grid:
 
 
 def make_grid(scene, dx: float) -> Grid:
-    """The grid covering the scene's domain with GRID_PAD extra cells on every side. With a Coulomb floor
-    of grid contact its node rows along y lie FLOOR_ROW_OFFSET cells off the floor's height (one more
-    row); a sticky floor keeps a node row on it, where its no-slip wall then lies."""
-    lo = np.asarray(scene.domain_min, float)
-    hi = np.asarray(scene.domain_max, float)
+    """The grid covering the scene's domain with GRID_PAD extra cells on every side."""
+    lo = np.asarray(scene.domain_min)
+    hi = np.asarray(scene.domain_max)
     n = np.ceil((hi - lo) / dx).astype(int) + 1 + 2 * GRID_PAD
-    origin = lo - GRID_PAD * dx
-    if (getattr(scene, "floor_y", None) is not None and getattr(scene, "floor_contact", "grid") == "grid"
-            and not getattr(scene, "floor_sticky", False)):
-        row = float(scene.floor_y) - FLOOR_ROW_OFFSET * dx
-        origin[1] = row - math.ceil((row - origin[1]) / dx - 1e-9) * dx
-        n[1] += 1
-    return Grid(origin=tuple(origin.tolist()), dx=float(dx), shape=tuple(int(k) for k in n))
+    return Grid(origin=tuple((lo - GRID_PAD * dx).tolist()), dx=float(dx), shape=tuple(int(k) for k in n))
 
 
 def _stencil(x, grid: Grid):

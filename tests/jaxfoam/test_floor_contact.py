@@ -1,9 +1,9 @@
 """Floor contact models (scene "floor": {"contact": "grid" | "particle"}).
 
 With grid contact the floor's rule acts on the grid nodes at or below it, so a particle is held by the
-floor as soon as its B-spline stencil reaches those nodes: foam rests with its lowest particles about
-0.7 cells above the highest such node row, and under a Coulomb floor the grid puts that row half a cell
-below the floor (`jaxfoam._grid.FLOOR_ROW_OFFSET`), so the foam's edge lies near the floor. With particle contact (`jaxfoam._boundary.particle_floor`) each
+floor as soon as its B-spline stencil reaches those nodes: foam that lands comes to rest with its
+lowest particles 0.66-0.81 cells above the floor (measured, 2D, dx 2.3-4.7 mm; experiments/results/
+floor_contact.md), a gap that scales with dx. With particle contact (`jaxfoam._boundary.particle_floor`) each
 particle's extent, half its sampling spacing, is kept from crossing the floor, and the grid's rule only
 acts half a cell below it: landed foam rests with that extent on the floor at any dx. Both models apply
 Coulomb's law, and a block sliding on a floor decelerates at friction x g (measured 0.99-1.004x with
@@ -58,23 +58,17 @@ def test_particle_floor_rule_on_single_particles():
 
 @pytest.mark.slow
 @pytest.mark.parametrize("friction", [0.5, "sticky"])
-def test_landed_foam_rests_on_the_floor_with_either_contact(friction):
+def test_landed_foam_rests_on_the_floor_with_particle_contact_and_a_cell_above_it_with_grid_contact(friction):
     """Foam dropped from 5 cm, at rest after 0.6 s: with particle contact its lowest particles lie at
     their half-extent above the floor (s/2 = dx/4 at 4 per cell) to round-off at dx 5 and 2.5 mm; with
-    grid contact on a Coulomb floor (FLOOR_ROW_OFFSET cells above a node row) the foam's edge, that
-    half-extent below its lowest particles, lies within 0.3 cells above the floor (0.29 measured at 5 mm;
-    with a node row on the floor, as a sticky floor keeps, it lies 0.7 cells above at 5 mm)."""
+    grid contact they float more than half a cell above it."""
     for dx in (0.005, 0.0025):
         lowest = {}
         for contact in ("particle", "grid"):
             tr = jf.simulate(block_scene(contact, friction, lift=0.05), FOAM, np.array([0.6]), dx)
             lowest[contact] = float(np.min(np.asarray(tr.frames["x"])[0, :, 1]))
         assert abs(lowest["particle"] - dx / 4) < 1e-9, (dx, lowest)
-        if friction == "sticky":  # a node row on the floor: the foam's edge more than a quarter cell above it
-            assert 0.25 * dx < lowest["grid"] - dx / 4 < dx, (dx, lowest)
-            print(f"sticky floor, dx {dx}: edge {(lowest['grid'] - dx / 4) / dx:.3f} cells")
-        else:
-            assert 0.0 <= lowest["grid"] - dx / 4 <= 0.3 * dx, (dx, lowest)
+        assert lowest["grid"] > 0.5 * dx, (dx, lowest)
 
 
 @pytest.mark.slow
