@@ -225,15 +225,9 @@ def render_contact_sheet(traj, out_png, n_frames: int = 8, color: str = "gamma_d
     return os.fspath(out_png)
 
 
-def render_video(traj, out_mp4, fps: int = 20, color: str = "gamma_dot", width_px: int = 800, dpi: int = 100,
-                 vmin: float | None = None, vmax: float | None = None) -> str:
-    """Write every frame of a trajectory to an MP4 video (H.264 via imageio-ffmpeg); returns the path.
-
-    Args: traj (path, SavedTrajectory or Trajectory), out_mp4, fps (frames per second of video),
-      color ("gamma_dot" 1/s or "s" Pa), width_px (video width in pixels, rounded to a multiple of 16),
-      dpi, vmin/vmax (colour scale limits). Raises ImportError naming the viz extra when imageio or
-      imageio-ffmpeg is missing.
-    """
+def _video_inputs(traj, fps):
+    """The video writers' shared checks and imports: (imageio, FigureCanvasAgg, Figure, the saved
+    trajectory, its frame indices). Raises ImportError naming the viz extra, ValueError on bad input."""
     _require_matplotlib()
     try:
         import imageio.v2 as imageio
@@ -249,6 +243,19 @@ def render_video(traj, out_mp4, fps: int = 20, color: str = "gamma_dot", width_p
     if traj.num_frames == 0:
         raise ValueError("the trajectory holds no frame to draw")
     idx = np.arange(traj.num_frames)
+    return imageio, FigureCanvasAgg, Figure, traj, idx
+
+
+def render_video(traj, out_mp4, fps: int = 20, color: str = "gamma_dot", width_px: int = 800, dpi: int = 100,
+                 vmin: float | None = None, vmax: float | None = None) -> str:
+    """Write every frame of a trajectory to an MP4 video (H.264 via imageio-ffmpeg); returns the path.
+
+    Args: traj (path, SavedTrajectory or Trajectory), out_mp4, fps (frames per second of video),
+      color ("gamma_dot" 1/s or "s" Pa), width_px (video width in pixels, rounded to a multiple of 16),
+      dpi, vmin/vmax (colour scale limits). Raises ImportError naming the viz extra when imageio or
+      imageio-ffmpeg is missing.
+    """
+    imageio, FigureCanvasAgg, Figure, traj, idx = _video_inputs(traj, fps)
     style = _Style(traj, color, idx, vmin, vmax)
     aspect = (style.ylim[1] - style.ylim[0]) / (style.xlim[1] - style.xlim[0])
     # H.264 encoders want frame sizes divisible by 16 (imageio's macro block size).
@@ -364,21 +371,7 @@ def render_surface_sheet(traj, out_png, n_frames: int = 8, camera=None, ncols: i
 def render_surface_video(traj, out_mp4, fps: int = 20, camera=None, width_px: int = 800) -> str:
     """Write every frame's shaded surface render to an MP4 video (H.264); returns the path. The frame
     size is width_px rounded up to a multiple of 16 by the view's height (also a multiple of 16)."""
-    _require_matplotlib()
-    try:
-        import imageio.v2 as imageio
-        import imageio_ffmpeg  # noqa: F401
-    except ImportError as exc:
-        raise ImportError(f"render_video needs imageio and imageio-ffmpeg: {VIZ_HINT}") from exc
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    if not (isinstance(fps, (int, float)) and fps > 0):
-        raise ValueError(f"fps must be a positive number, got {fps!r}")
-    traj = as_saved_trajectory(traj)
-    if traj.num_frames == 0:
-        raise ValueError("the trajectory holds no frame to draw")
-    idx = np.arange(traj.num_frames)
+    imageio, FigureCanvasAgg, Figure, traj, idx = _video_inputs(traj, fps)
     view = _surface_view(traj, idx, int(width_px), camera, multiple=16)
     fig = Figure(figsize=(view.width / 100, view.height / 100), dpi=100)
     canvas = FigureCanvasAgg(fig)
