@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 from typing import Callable
 
+import jax
 import numpy as np
 
 from . import optim
@@ -49,6 +50,17 @@ def judge_reported_intervals(interval: dict, params: dict, transform, identifiab
             notes.append(f"{n} is not identifiable from these data: its reported interval [{lo:.4g}, {hi:.4g}] "
                          f"(statistical and numerical error combined) {why}.")
     return out, notes
+
+
+def use_population(settings: FitSettings, problem: CalibrationProblem) -> bool:
+    """Whether a fit runs its starts as a population (`FitSettings.population`; None: when its batch is
+    split over more than one device, or the backend is not the CPU). Sets the problem's devices."""
+    if settings.population is False:
+        return False
+    problem.use_devices(settings.devices)
+    if settings.population:
+        return True
+    return problem.devices > 1 or jax.default_backend() != "cpu"
 
 
 def make_optimizer(name: str):
@@ -95,7 +107,8 @@ def _path_settings(settings: FitSettings) -> dict:
     """The settings the optimizer's path depends on (not the uncertainty options, nor the iteration
     and time budgets, which a resumed fit may extend), as JSON values."""
     return json.loads(json.dumps({k: v for k, v in settings.to_dict().items()
-                                  if k not in ("dx_check", "dx_refit", "level", "max_iter", "time_budget")}))
+                                  if k not in ("dx_check", "dx_refit", "level", "max_iter", "time_budget",
+                                               "population", "devices")}))
 
 
 def _same_fit(logged: dict, fingerprint: dict) -> bool:
@@ -154,9 +167,15 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
     starts, unit = make_starts(tr, settings)
     optimizer = make_optimizer(settings.optimizer)
     n_starts = len(starts)
+    population = None
+    if n_starts > 1 and use_population(settings, problem):
+        # A lone start left runs unpadded; two or more run in the population's full batch.
+        population = optim.BatchOracle(problem.residual_and_jacobian_batch, n_starts, sizes=(1, n_starts))
+        say(f"population: {n_starts} starts together, {n_starts * len(names)} jvp rollouts per batch on "
+            f"{problem.devices} device(s)")
 
     def evaluate(z):
-        return problem.residual_and_jacobian(z)
+        return problem.residual_and_jacobian(z) if population is None else population(z)
 
     def on_iteration(info: optim.IterationInfo):
         theta = problem.params_of(info.x)
@@ -186,7 +205,7 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
     before = time.perf_counter() - wall0
     try:
         ms = optim.multistart(solve, starts, log=fitlog, resume=resume, seed=settings.seed, unit=unit,
-                                max_time=settings.time_budget)
+                              max_time=settings.time_budget, population=population)
     except OSError as exc:  # h5py's error for a log damaged on disk
         raise CalibrationError(f"{log}: the fit log cannot be read or written ({exc}); start afresh without "
                                f"--resume, or use another log") from exc

@@ -129,6 +129,56 @@ def _residual_and_jacfwd(z, static, base, model, state0, frame_times, target):
     return r, J
 
 
+def _folded(model):
+    """The model with the batch-folding transfers (`Tuning.batch_fold`): a vmapped rollout then
+    scatters and gathers once over the batch's grids laid end to end."""
+    return model.replace(tuning=model.tuning.replace(batch_fold=True))
+
+
+def _batch_program(static, mesh, columns: bool):
+    """The jit-compiled batch of residual rollouts (columns=False: Z (K, p) -> R (K, n)) or of jvp
+    rollouts (columns=True: (Z, E) (K, p) each -> (R (K, n), dR/dz . E (K, n))), one `jax.vmap` over
+    K; with a `jax.sharding.Mesh` of D > 1 devices, K (a multiple of D) is split over them by
+    `jax.shard_map`, each device running its part as one vmapped program."""
+
+    def run(*a, base, model, state0, frame_times, target):
+        model = _folded(model)
+
+        def fn(z):
+            return _residual(z, static, base, model, state0, frame_times, target)
+
+        if columns:
+            return jax.vmap(lambda z, e: jax.jvp(fn, (z,), (e,)))(*a)
+        return jax.vmap(fn)(*a)
+
+    def program(batch, base, model, state0, frame_times, target):
+        body = functools.partial(run, base=base, model=model, state0=state0, frame_times=frame_times, target=target)
+        if mesh is None:
+            return body(*batch)
+        spec = jax.sharding.PartitionSpec("batch")
+        out = (spec, spec) if columns else spec
+        return jax.shard_map(body, mesh=mesh, in_specs=(spec,) * len(batch), out_specs=out,
+                             check_vma=False)(*batch)
+
+    return jax.jit(program)
+
+
+def batch_mesh(devices):
+    """A 1-D `jax.sharding.Mesh` named "batch" over `devices` (a count of local devices, a list of
+    devices, or None for all of `jax.devices()`); None when that is a single device."""
+    if devices is None:
+        devs = jax.devices()
+    elif isinstance(devices, int):
+        avail = jax.devices()
+        if not 1 <= devices <= len(avail):
+            raise CalibrationError(f"devices must be in [1, {len(avail)}] (the {jax.default_backend()} devices "
+                                   f"of this process), got {devices}")
+        devs = avail[:devices]
+    else:
+        devs = list(devices)
+    return None if len(devs) <= 1 else jax.sharding.Mesh(np.asarray(devs), ("batch",))
+
+
 @functools.partial(jax.jit, static_argnames=("static",))
 def _positions(z, static, base, model, state0, frame_times):
     params, model = _bind(z, static, base, model)
@@ -177,6 +227,49 @@ class CalibrationProblem:
         self.jacobian_adjoint = adjoint
         self.jacobian_threads = adjoint.resolve_threads(sim.model.tuning)
         self._columns_compiled = False
+        self._batch = {}
+        self.mesh = None
+
+    def use_devices(self, devices) -> "CalibrationProblem":
+        """Shard the batched evaluations (`residual_batch`, `residual_and_jacobian_batch`) over `devices`
+        (a count of local devices, a device list, or None for all); returns self."""
+        self.mesh = batch_mesh(devices)
+        self._batch = {}
+        return self
+
+    @property
+    def devices(self) -> int:
+        """The number of devices the batched evaluations are split over."""
+        return 1 if self.mesh is None else int(self.mesh.size)
+
+    def _run_batch(self, columns: bool, *batch):
+        # Rows padded to a multiple of the devices by repeating the last one (its results are dropped).
+        k = batch[0].shape[0]
+        pad = -k % self.devices
+        if pad:
+            batch = tuple(jnp.concatenate([b, jnp.repeat(b[-1:], pad, axis=0)]) for b in batch)
+        if columns not in self._batch:
+            self._batch[columns] = _batch_program(self.static, self.mesh, columns)
+        out = self._batch[columns](batch, *self._args()[1:], self.target)
+        return jax.tree_util.tree_map(lambda a: a[:k], out)
+
+    def residual_batch(self, Z) -> jax.Array:
+        """Residuals R (B, n) at B points Z (B, p) of fitted coordinates, as one batched program
+        (equal to `residual` row by row, to round-off)."""
+        Z = jnp.asarray(Z, self.sim.dtype)
+        return self._run_batch(False, Z)
+
+    def residual_and_jacobian_batch(self, Z):
+        """(R (B, n), J (B, n, p)) at B points Z (B, p): the B p jvp rollouts (one per point and fitted
+        parameter) as one batched program, sharded over `devices` (equal to `residual_and_jacobian`
+        point by point, to round-off)."""
+        Z = jnp.asarray(Z, self.sim.dtype)
+        B, p = Z.shape
+        rows = jnp.repeat(Z, p, axis=0)
+        basis = jnp.tile(jnp.eye(p, dtype=Z.dtype), (B, 1))
+        r, cols = self._run_batch(True, rows, basis)
+        n = r.shape[1]
+        return r[::p], jnp.swapaxes(cols.reshape(B, p, n), 1, 2)
 
     def _args(self):
         return (self.static, self._base, self.sim.model, self.sim.state0, self._times)

@@ -113,6 +113,12 @@ class FitSettings:
         iteration took, and starts with no time left do not run. The best point found is then reported
         (with a note), and the fit can be continued with `resume` under a new budget. Building the
         simulator before, and the uncertainty and discretization check after, are not counted.
+      population: run the starts together (`fitting.optim.population`), each step of all of them one
+        batched evaluation of their Jacobians, sharded over `devices`; every start follows the path it
+        follows alone. None: on when the batch has more than one device or the backend is not the CPU
+        (one CPU device runs a vmapped batch no faster than its starts in turn, docs/performance.md).
+      devices: local devices the population's batch is split over (None: all of them). On the CPU
+        there is one device unless the process asked for more (`jaxfoam fit --devices N` does).
       seed: Latin-hypercube seed of the starts (and particle sampling seed).
       pixel_level: pyramid level of the observations (0 = the data's pixels, l = 2^l times larger);
         None picks the coarsest level whose pixels are not larger than the particle spacing.
@@ -156,6 +162,8 @@ class FitSettings:
     max_iter: int | None = None
     time_budget: float | None = None
     time_window: tuple | None = None
+    population: bool | None = None
+    devices: int | None = None
     seed: int = 0
     pixel_level: int | None = None
     level: float = DEFAULT_LEVEL
@@ -205,6 +213,10 @@ class FitSettings:
                     raise CalibrationError(f"{label}: {name} needs finite 0 < lo < hi, got {lo}:{hi}")
         if not int(self.starts) >= 1:
             raise CalibrationError(f"starts must be >= 1, got {self.starts!r}")
+        if self.population not in (None, True, False):
+            raise CalibrationError(f"population must be None, True or False, got {self.population!r}")
+        if self.devices is not None and not (isinstance(self.devices, int) and self.devices >= 1):
+            raise CalibrationError(f"devices must be None (all local devices) or an integer >= 1, got {self.devices!r}")
         for name, value in (self.initial or {}).items():
             if name not in known:
                 raise CalibrationError(f"initial: unknown parameter {name!r}; expected one of {known}")

@@ -18,6 +18,7 @@ from ._lm import LevenbergMarquardt, LMState
 from ._solution import History, IterationInfo, Reason, Solution
 from .fitlog import FitLog, FitLogError, read_fitlog
 from .multistart import MultiStartResult, latin_hypercube, lhs_starts, multistart
+from .population import BatchOracle, PopulationStopped, run_population
 from .transforms import ParameterTransform
 from .uncertainty import Uncertainty, gauss_newton_uncertainty, solution_uncertainty, student_t_quantile
 
@@ -25,6 +26,6 @@ __all__ = [
     "AbstractOptimizer", "Adam", "AdamState", "LBFGS", "LBFGSState", "LevenbergMarquardt", "LMState",
     "minimize", "least_squares", "value_and_jacfwd", "Solution", "History", "IterationInfo", "Reason",
     "FitLog", "FitLogError", "read_fitlog", "ParameterTransform", "latin_hypercube", "lhs_starts",
-    "multistart", "MultiStartResult", "Uncertainty", "gauss_newton_uncertainty", "solution_uncertainty",
+    "multistart", "MultiStartResult", "BatchOracle", "PopulationStopped", "run_population", "Uncertainty", "gauss_newton_uncertainty", "solution_uncertainty",
     "student_t_quantile",
 ]

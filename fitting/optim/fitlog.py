@@ -29,9 +29,11 @@ rows missing, a checksum that does not match, non-finite parameters) is refused 
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
+import threading
 
 import h5py
 import numpy as np
@@ -72,6 +74,8 @@ class FitLog:
         if mode not in ("a", "r"):
             raise ValueError(f"FitLog mode must be 'a' or 'r', got {mode!r}")
         self.path = os.fspath(path)
+        # The starts of a population (`fitting.optim.population`) write their runs from their own threads.
+        self.lock = threading.RLock()
         if os.path.isdir(self.path):
             raise FitLogError(f"{self.path}: the fit log path is a directory")
         try:
@@ -137,6 +141,16 @@ class FitLog:
         return np.asarray(g["starts"]), np.asarray(g["unit"]), (None if seed < 0 else seed)
 
 
+def _locked(method):
+    """A RunLog method run under its log's lock."""
+
+    @functools.wraps(method)
+    def run(self, *args, **kwargs):
+        with self.log.lock:
+            return method(self, *args, **kwargs)
+    return run
+
+
 class RunLog:
     """One run (one optimizer start) inside a `FitLog`."""
 
@@ -160,6 +174,7 @@ class RunLog:
     def meta(self) -> dict:
         return json.loads(self.group.attrs["meta"])
 
+    @_locked
     def begin(self, meta: dict, x0, seed=None):
         """Start the run afresh (deleting an earlier run with this index)."""
         f = self.log.file
@@ -172,6 +187,7 @@ class RunLog:
         g.create_dataset("x0", data=np.asarray(x0))
         f.flush()
 
+    @_locked
     def check(self, meta: dict, x0):
         """Raise FitLogError unless this run was started with the same settings and starting point."""
         logged = self.meta
@@ -185,6 +201,7 @@ class RunLog:
             raise FitLogError(f"{self.log.path} run {self.index}: cannot resume, the starting point x0 differs "
                               f"from the logged one {np.asarray(self.group['x0']).tolist()}")
 
+    @_locked
     def append(self, *, iteration, x, loss, evaluations, nonfinite, time, state: dict):
         """Write one row (and the large state leaves into slot iteration % 2), commit it, flush."""
         g = self.group
@@ -231,6 +248,7 @@ class RunLog:
         g.attrs["rows"] = k + 1
         self.log.file.flush()
 
+    @_locked
     def restore(self) -> dict:
         """The committed rows: dict with history arrays and `state` (field -> array of the last row)."""
         try:
@@ -285,6 +303,7 @@ class RunLog:
         out["finished"] = self.finished()
         return out
 
+    @_locked
     def finish(self, reason: str, *, evaluations: int, nonfinite: int, wall_time: float, status: int):
         """Mark the run finished with its reason, final counters and the optimizer's final status code."""
         a = self.group.attrs
@@ -295,6 +314,7 @@ class RunLog:
         a["wall_time"] = float(wall_time)
         self.log.file.flush()
 
+    @_locked
     def unfinish(self):
         for key in ("reason", "final_status", "final_evaluations", "final_nonfinite", "wall_time"):
             if key in self.group.attrs:

@@ -10,6 +10,7 @@ import numpy as np
 from ._driver import check_max_time
 from ._solution import Solution
 from .fitlog import FitLog, FitLogError
+from .population import BatchOracle, run_population
 from .transforms import ParameterTransform
 
 # Fraction of each parameter's sampling range left out at both ends: a start on a bound is a saturated
@@ -90,7 +91,7 @@ class MultiStartResult:
 
 
 def multistart(solve: Callable[..., Solution], starts, *, log=None, resume: bool = False, seed=None,
-               unit=None, max_time: float | None = None) -> MultiStartResult:
+               unit=None, max_time: float | None = None, population: BatchOracle | None = None) -> MultiStartResult:
     """Run `solve` from every start and keep the best.
 
     Args:
@@ -106,6 +107,10 @@ def multistart(solve: Callable[..., Solution], starts, *, log=None, resume: bool
         always evaluates its starting point, a later start the budget leaves no time for is not
         evaluated (`Reason.MAX_TIME`, loss inf, empty history). With `resume`, runs stopped by the
         budget continue and unstarted ones start, under the new budget.
+      population: run the starts together, each in its own thread, with `solve` evaluating through this
+        `BatchOracle` (`fitting.optim.population`): every start then follows its sequential path and
+        each step of all of them costs one batched evaluation. With `max_time`, every start gets the
+        whole budget (they share the wall clock).
     """
     check_max_time(max_time)
     deadline = None if max_time is None else time.perf_counter() + float(max_time)
@@ -127,7 +132,11 @@ def multistart(solve: Callable[..., Solution], starts, *, log=None, resume: bool
                     fitlog.clear()
                 fitlog.write_starts(starts, unit, seed)
         solutions = []
-        for i, x0 in enumerate(starts):
+        if population is not None:
+            budget = {} if deadline is None else {"max_time": max(1e-9, deadline - time.perf_counter())}
+            solutions = run_population(lambda x0, run, **kw: solve(x0, log=fitlog, run=run, resume=resume, seed=seed,
+                                                                   **kw), starts, population, **budget)
+        for i, x0 in enumerate(starts if population is None else ()):
             budget = {}
             if deadline is not None:
                 # The first start always evaluates its starting point, so there is a point to report.

@@ -41,6 +41,8 @@ class Tuning:
         evaluate exp and log1p in float32 (the last full-precision step restores round-off accuracy).
       sort_by_cell: reorder particles by grid cell for each frame (outputs keep the order).
       jacobian_threads: concurrent groups of forward-mode Jacobian columns (`ForwardMode`'s default).
+      batch_fold: under `jax.vmap`, the transfers' scatters and gathers run over the batch's grids laid end
+        to end (`jaxfoam._xla_cpu.fold`) instead of with batched indices; forward-mode programs only.
       compiler_options: XLA compiler options of differentiated rollouts, as (name, value) pairs.
     """
 
@@ -49,6 +51,7 @@ class Tuning:
     halley_low_precision: bool = True
     sort_by_cell: bool = True
     jacobian_threads: int = 2
+    batch_fold: bool = False
     compiler_options: tuple = ()
 
     def __post_init__(self):

@@ -16,11 +16,8 @@ import jax
 import jax.numpy as jnp
 
 from .._grid import Grid, _offset_index, _offsets, _stencil, _stencil_derivs, _strides
+from .fold import IN_BOUNDS as _IN_BOUNDS, gather_folded, gather_plain, scatter_folded, scatter_plain
 
-_WINDOW_SCATTER = jax.lax.ScatterDimensionNumbers(update_window_dims=(1, 2), inserted_window_dims=(),
-                                                  scatter_dims_to_operand_dims=(0,))
-_WINDOW_GATHER = jax.lax.GatherDimensionNumbers(offset_dims=(1, 2), collapsed_slice_dims=(), start_index_map=(0,))
-_IN_BOUNDS = jax.lax.GatherScatterMode.PROMISE_IN_BOUNDS
 def _window_payload(grid: Grid, fx, w, mvA, A, mass=None, tangent=None):
     """The APIC payload W_ip (mv_p + A_p (x_i - x_p)) [, W_ip m_p] in the windowed scatter's order:
     (3^(d-1) N, 3, c), c = d or d + 1. fx, w: the particles' `_stencil` fractions and 1D weights;
@@ -70,27 +67,28 @@ def _window_payload(grid: Grid, fx, w, mvA, A, mass=None, tangent=None):
     return jnp.concatenate(blocks, axis=0)
 
 
-def _window_scatter(grid: Grid, idx0, vals):
+def _window_scatter(grid: Grid, idx0, vals, fold: bool = False):
     """Scatter-add of a `_window_payload` (3^(d-1) N, 3, c) to the grid: (G, c). One index per particle
-    and offset of the other axes, a (3, c) window of the last axis's 3 nodes each (_WINDOW_SCATTER)."""
+    and offset of the other axes, a (3, c) window of the last axis's 3 nodes each (`fold.scatter_plain`;
+    fold: the batch-folding op, `Tuning.batch_fold`)."""
     d = grid.dim
     idx = jnp.concatenate([idx0 + _offset_index(off + (0,), grid) for off in _offsets(d - 1)])
-    return jax.lax.scatter_add(jnp.zeros((grid.num_nodes, vals.shape[-1]), vals.dtype), idx[:, None], vals,
-                               _WINDOW_SCATTER, mode=_IN_BOUNDS)
+    return (scatter_folded if fold else scatter_plain)(jnp.zeros((grid.num_nodes, vals.shape[-1]), vals.dtype),
+                                                       idx, vals)
 
 
-def _p2g_scatter(grid: Grid, fx, w, idx0, mvA, A, mass=None):
+def _p2g_scatter(grid: Grid, fx, w, idx0, mvA, A, mass=None, fold: bool = False):
     """Scatter-add of the APIC payload W_ip (mv_p + A_p (x_i - x_p)) [, W_ip m_p] to the grid:
     (G, d) or, with mass, (G, d + 1) (`_window_payload`, `_window_scatter`)."""
-    return _window_scatter(grid, idx0, _window_payload(grid, fx, w, mvA, A, mass))
+    return _window_scatter(grid, idx0, _window_payload(grid, fx, w, mvA, A, mass), fold)
 
 
-def _window_gather(table, start):
-    """The rows start, start + 1, start + 2 of `table` (G, c) per particle: (N, 3, c) (_WINDOW_GATHER)."""
-    return jax.lax.gather(table, start[:, None], _WINDOW_GATHER, (3, table.shape[1]), mode=_IN_BOUNDS)
+def _window_gather(table, start, fold: bool = False):
+    """The rows start, start + 1, start + 2 of `table` (G, c) per particle: (N, 3, c) (`fold.gather_plain`)."""
+    return (gather_folded if fold else gather_plain)(table, start)
 
 
-def _window_loop(table, x, idx0, grid: Grid, init, body, pos_scale=1.0):
+def _window_loop(table, x, idx0, grid: Grid, init, body, pos_scale=1.0, fold: bool = False):
     """Sum over the 3^d stencil nodes i of each particle p, gathering the grid rows `table` (G, c) of
     the last axis's 3 nodes as one window: `body(carry, g (N, c), W (N,), dpos) -> carry` runs per
     node with g = table[i], W = w_ip and dpos = pos_scale (x_i - x_p) (d arrays (N,), m times
@@ -152,7 +150,7 @@ def _window_sum(table, x, idx0, grid: Grid, init, body, t, tuning, derivs=False,
         mid = off[:-1]
         if mid not in windows:
             start = idx0 + sum(mid[k] * strides[k] for k in range(d - 1))
-            windows[mid] = _window_gather(table, start)
+            windows[mid] = _window_gather(table, start, tuning.batch_fold)
         ws = [w[off[k]][:, k] for k in range(d)]
         dpos = [(off[k] - fx[:, k]) * (grid.dx * pos_scale) for k in range(d)]
         extra = ()
@@ -164,8 +162,8 @@ def _window_sum(table, x, idx0, grid: Grid, init, body, t, tuning, derivs=False,
     return jax.tree_util.tree_unflatten(treedef, list(tuning.buffer("stencil_sums", tuple(leaves), t)))
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
-def _p2g_impl(grid, x, idx0, mvA, A, mass):
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1))
+def _p2g_impl(grid, fold, x, idx0, mvA, A, mass):
     """`_p2g_scatter` of the payload (mvA, A, mass) at positions x: (grid momentum (G, d), mass (G,)).
 
     Its forward-mode derivative is written out (`_window_payload` with a tangent): one kernel per
@@ -173,18 +171,19 @@ def _p2g_impl(grid, x, idx0, mvA, A, mass):
     broadcasts and stacks; it transposes for reverse mode like any linear code."""
     _, fx, w = _stencil(x, grid)
     d = x.shape[1]
-    out = _p2g_scatter(grid, fx, w, idx0, mvA, A, mass)
+    out = _p2g_scatter(grid, fx, w, idx0, mvA, A, mass, fold=fold)
     return out[:, :d], out[:, d]
 
 
 @_p2g_impl.defjvp
-def _p2g_impl_jvp(grid, primals, tangents):
+def _p2g_impl_jvp(grid, fold, primals, tangents):
     x, idx0, mvA, A, mass = primals
     dx, _, dmvA, dA, dmass = tangents
     _, fx, w = _stencil(x, grid)
     d = x.shape[1]
-    out = _p2g_scatter(grid, fx, w, idx0, mvA, A, mass)
-    dout = _window_scatter(grid, idx0, _window_payload(grid, fx, w, mvA, A, mass, tangent=(dx, dmvA, dA, dmass)))
+    out = _p2g_scatter(grid, fx, w, idx0, mvA, A, mass, fold=fold)
+    dout = _window_scatter(grid, idx0, _window_payload(grid, fx, w, mvA, A, mass, tangent=(dx, dmvA, dA, dmass)),
+                           fold)
     return (out[:, :d], out[:, d]), (dout[:, :d], dout[:, d])
 
 
@@ -195,11 +194,11 @@ def _p2g_transfer(grid, tuning, x, idx0, mvA, A, mass, t):
     are joined into one (G, d + 1) table in the backward pass: one concatenation, where autodiff's
     transpose of the slices pads each to the full table and adds them.) t: the substep's start time, s (`_window_sum`); its
     cotangent is zero."""
-    return _p2g_impl(grid, x, idx0, mvA, A, mass)
+    return _p2g_impl(grid, False, x, idx0, mvA, A, mass)
 
 
 def _p2g_transfer_fwd(grid, tuning, x, idx0, mvA, A, mass, t):
-    return _p2g_impl(grid, x, idx0, mvA, A, mass), (x, idx0, mvA, A, mass, t)
+    return _p2g_impl(grid, False, x, idx0, mvA, A, mass), (x, idx0, mvA, A, mass, t)
 
 
 def _p2g_transfer_bwd(grid, tuning, res, ct):
@@ -256,7 +255,7 @@ def _g2p_impl(x, grid_v, grid: Grid, idx0, t, tuning):
     zero = (jnp.zeros_like(x), tuple(tuple(zc for _ in range(d)) for _ in range(d)))
     # C = 4/dx^2 sum_i w_ip v_i (x_i - x_p)^T: the offsets come scaled by 4/dx^2.
     if tuning.g2p_loop_2d_float32 and d == 2 and x.dtype == jnp.float32:
-        return _window_loop(grid_v, x, idx0, grid, zero, accumulate, pos_scale=scale)
+        return _window_loop(grid_v, x, idx0, grid, zero, accumulate, pos_scale=scale, fold=tuning.batch_fold)
     # The grid velocities as a buffer (`_window_sum`).
     return _window_sum(tuning.buffer("g2p_table", grid_v, t), x, idx0, grid, zero, accumulate, t, tuning,
                        pos_scale=scale)
@@ -322,7 +321,7 @@ def p2g_transfer(grid: Grid, tuning, x, idx0, mvA, A, mass, t, hand_adjoint: boo
     (`_p2g_transfer`; the result is then not forward-differentiable)."""
     if hand_adjoint:
         return _p2g_transfer(grid, tuning, x, idx0, mvA, A, mass, t)
-    return _p2g_impl(grid, x, idx0, mvA, A, mass)
+    return _p2g_impl(grid, tuning.batch_fold, x, idx0, mvA, A, mass)
 
 
 def g2p_transfer(grid: Grid, tuning, x, grid_v, idx0, t, hand_adjoint: bool = False):
