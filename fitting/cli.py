@@ -225,6 +225,13 @@ def add_fit_parser(subparsers) -> argparse.ArgumentParser:
                     help="the fracture stage in every substep of the fit (default off); alone it uses the "
                          "FractureConfig defaults (density_ratio 0.2 in 2D, 0.12 in 3D), or e.g. "
                          "--fracture density_ratio=0.15")
+    ap.add_argument("--population", choices=("auto", "on", "off"), default="auto",
+                    help="run the starts together, each step of all of them one batched evaluation of their "
+                         "Jacobians (same results as in turn); auto: on when --devices gives more than one "
+                         "device or the backend is not the CPU (default auto)")
+    ap.add_argument("--devices", type=int_at_least(1), default=None, metavar="N",
+                    help="local devices the population's batch is split over (default: all; on the CPU, N > 1 "
+                         "makes N host devices that share the cores)")
     ap.add_argument("--no-plots", action="store_true", help="skip the pictures")
     add_budget_options(ap)
     ap.set_defaults(func=run_fit)
@@ -244,6 +251,8 @@ def settings_from_args(args) -> FitSettings:
                        dx_check=not args.no_dx_check, dx_refit=args.dx_refit,
                        resample=parse_feature(getattr(args, "resample", None), ResampleConfig, "resample"),
                        fracture=parse_feature(getattr(args, "fracture", None), FractureConfig, "fracture"),
+                       population={"auto": None, "on": True, "off": False}[getattr(args, "population", "auto")],
+                       devices=getattr(args, "devices", None),
                        ).validate()
 
 
@@ -269,9 +278,27 @@ def _terminate_as_interrupt():
         signal.signal(signal.SIGTERM, previous)
 
 
+def request_devices(n: int | None) -> None:
+    """Make `n` local devices available to this process: on the CPU backend, n host devices (JAX's
+    jax_num_cpu_devices, which must be set before the backend starts). Raises CalibrationError when
+    fewer than n exist afterwards."""
+    if n is None or n <= 1:
+        return
+    import jax
+    try:
+        jax.config.update("jax_num_cpu_devices", int(n))
+    except RuntimeError:  # the backend already started (a notebook); the count is what it is
+        pass
+    have = len(jax.devices())
+    if have < n:
+        raise CalibrationError(f"--devices {n}: this process has {have} {jax.default_backend()} device(s); on the "
+                               f"CPU start Python with XLA_FLAGS=--xla_force_host_platform_device_count={n}")
+
+
 def run_fit(args) -> int:
     """Run the `fit` subcommand from parsed arguments; returns the exit status."""
     settings = settings_from_args(args)
+    request_devices(settings.devices)
     out = Path(args.out)
     log = Path(args.log) if args.log else default_log_path(out)
     check_output(out, "--out", {"the data": args.data})
