@@ -227,11 +227,19 @@ def add_fit_parser(subparsers) -> argparse.ArgumentParser:
                          "--fracture density_ratio=0.15")
     ap.add_argument("--population", choices=("auto", "on", "off"), default="auto",
                     help="run the starts together, each step of all of them one batched evaluation of their "
-                         "Jacobians (same results as in turn); auto: on when --devices gives more than one "
-                         "device or the backend is not the CPU (default auto)")
+                         "Jacobians (same results as in turn); auto: on when the backend is not the CPU "
+                         "(default auto)")
     ap.add_argument("--devices", type=int_at_least(1), default=None, metavar="N",
-                    help="local devices the population's batch is split over (default: all; on the CPU, N > 1 "
+                    help="devices the population's batch is split over (default: all; on the CPU, N > 1 "
                          "makes N host devices that share the cores)")
+    ap.add_argument("--coordinator", default=None, metavar="HOST:PORT",
+                    help="a fit over several processes (hosts): process 0's address; every process runs the same "
+                         "command with its --process-id, and the population's batch is split over all their "
+                         "devices (docs/cli.md)")
+    ap.add_argument("--num-processes", type=int_at_least(1), default=None, metavar="N",
+                    help="processes of a --coordinator fit")
+    ap.add_argument("--process-id", type=int_at_least(0), default=None, metavar="I",
+                    help="this process's index in a --coordinator fit (0 writes the results; each keeps its own log)")
     ap.add_argument("--no-plots", action="store_true", help="skip the pictures")
     add_budget_options(ap)
     ap.set_defaults(func=run_fit)
@@ -295,12 +303,33 @@ def request_devices(n: int | None) -> None:
                                f"CPU start Python with XLA_FLAGS=--xla_force_host_platform_device_count={n}")
 
 
+def start_processes(args) -> int:
+    """Join a multi-process fit (`jax.distributed.initialize`) when --coordinator is given; returns this
+    process's index (0 without one). Raises CalibrationError for an incomplete or inconsistent set."""
+    coordinator = getattr(args, "coordinator", None)
+    n, i = getattr(args, "num_processes", None), getattr(args, "process_id", None)
+    if coordinator is None:
+        if n is not None or i is not None:
+            raise CalibrationError("--num-processes and --process-id need --coordinator HOST:PORT")
+        return 0
+    if n is None or i is None:
+        raise CalibrationError("--coordinator needs --num-processes N and --process-id I (0 .. N-1)")
+    if not 0 <= i < n:
+        raise CalibrationError(f"--process-id must be in [0, {n - 1}] for --num-processes {n}, got {i}")
+    import jax
+    jax.distributed.initialize(coordinator_address=coordinator, num_processes=n, process_id=i)
+    return i
+
+
 def run_fit(args) -> int:
     """Run the `fit` subcommand from parsed arguments; returns the exit status."""
     settings = settings_from_args(args)
+    rank = start_processes(args)
     request_devices(settings.devices)
     out = Path(args.out)
     log = Path(args.log) if args.log else default_log_path(out)
+    if rank:
+        log = log.with_name(f"{log.stem}.p{rank}{log.suffix}")
     check_output(out, "--out", {"the data": args.data})
     check_output(log, "--log", {"the data": args.data, "--out": out})
     data = read_silhouettes(args.data)
@@ -315,8 +344,11 @@ def run_fit(args) -> int:
     if not args.resume and log.exists():
         log.unlink()  # a fresh fit: an old log of this name is replaced
 
+    lock = threading.Lock()
+
     def say(msg):
-        print(msg, flush=True)
+        with lock:  # a population's starts report from their own threads
+            print(msg, flush=True)
 
     try:
         with _terminate_as_interrupt():
@@ -326,6 +358,9 @@ def run_fit(args) -> int:
                          f"log {log} keeps every finished iteration: run the same command with --resume to "
                          f"continue\n")
         return 143 if isinstance(exc, _Terminated) else 130
+    if rank:
+        print(f"process {rank}: the fit ended (process 0 writes {out}; this process's log is {log})")
+        return 0
     result.write(out)
     print(result.report())
     print(f"wrote {out} (fit log {log})")

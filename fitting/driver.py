@@ -53,14 +53,13 @@ def judge_reported_intervals(interval: dict, params: dict, transform, identifiab
 
 
 def use_population(settings: FitSettings, problem: CalibrationProblem) -> bool:
-    """Whether a fit runs its starts as a population (`FitSettings.population`; None: when its batch is
-    split over more than one device, or the backend is not the CPU). Sets the problem's devices."""
-    if settings.population is False:
+    """Whether a fit runs its starts as a population (`FitSettings.population`; None: when the backend is
+    not the CPU or the fit spans several processes). Sets the problem's devices."""
+    auto = jax.default_backend() != "cpu" or jax.process_count() > 1
+    if settings.population is False or (settings.population is None and not auto):
         return False
     problem.use_devices(settings.devices)
-    if settings.population:
-        return True
-    return problem.devices > 1 or jax.default_backend() != "cpu"
+    return True
 
 
 def make_optimizer(name: str):
@@ -213,6 +212,9 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
         if fitlog is not None:
             fitlog.close()
     after0 = time.perf_counter()
+    # A population's starts share the wall clock; sequential starts add up.
+    walls = [float(s.wall_time) for s in ms.solutions]
+    optimization_wall = max(walls) if population is not None else sum(walls)
 
     # The lowest loss of any iterate of any start: Adam accepts every finite step, so its last
     # iterate need not be its best one (LM and L-BFGS only accept decreases).
@@ -268,7 +270,7 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
                             refit_loss=list(details["refit_loss"]) if "refit_loss" in details else None,
                             frame_change=None if change is None else [float(v) for v in change])
             limit = grid_limit_note(names, err_z, half_stat, problem.dx, problem.scene.dim,
-                                    sum(float(s.wall_time) for s in ms.solutions))
+                                    optimization_wall)
             if limit:
                 notes.append(limit)
             uneven = None if change is None else uneven_frames_note(
@@ -323,7 +325,7 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
                      runs=runs, best_run=best_index, best_iteration=k_best, reason=best.reason.value,
                      iterations=int(best.iterations), evaluations=int(best.evaluations), settings=settings_out,
                      data=data_out, n_effective=float(n_eff),
-                     wall_time=before + sum(s.wall_time for s in ms.solutions) + time.perf_counter() - after0,
+                     wall_time=before + optimization_wall + time.perf_counter() - after0,
                      uncertainty=unc, residual=np.asarray(r))
     return _with_goodness_of_fit(problem, result)
 

@@ -130,9 +130,10 @@ def _residual_and_jacfwd(z, static, base, model, state0, frame_times, target):
 
 
 def _folded(model):
-    """The model with the batch-folding transfers (`Tuning.batch_fold`): a vmapped rollout then
-    scatters and gathers once over the batch's grids laid end to end."""
-    return model.replace(tuning=model.tuning.replace(batch_fold=True))
+    """The model with the batch-folding transfers (`Tuning.batch_fold`) where its tuning says so
+    (`Tuning.fold_batches`: XLA:CPU): a vmapped rollout then scatters and gathers once over the
+    batch's grids laid end to end."""
+    return model.replace(tuning=model.tuning.replace(batch_fold=model.tuning.fold_batches))
 
 
 def _batch_program(static, mesh, columns: bool):
@@ -155,9 +156,13 @@ def _batch_program(static, mesh, columns: bool):
         body = functools.partial(run, base=base, model=model, state0=state0, frame_times=frame_times, target=target)
         if mesh is None:
             return body(*batch)
+
+        def part(*rows):
+            # Every device (and process) gets the whole result: a process reads only what it holds.
+            return jax.tree_util.tree_map(lambda a: jax.lax.all_gather(a, "batch", tiled=True), body(*rows))
+
         spec = jax.sharding.PartitionSpec("batch")
-        out = (spec, spec) if columns else spec
-        return jax.shard_map(body, mesh=mesh, in_specs=(spec,) * len(batch), out_specs=out,
+        return jax.shard_map(part, mesh=mesh, in_specs=(spec,) * len(batch), out_specs=jax.sharding.PartitionSpec(),
                              check_vma=False)(*batch)
 
     return jax.jit(program)
@@ -250,7 +255,11 @@ class CalibrationProblem:
             batch = tuple(jnp.concatenate([b, jnp.repeat(b[-1:], pad, axis=0)]) for b in batch)
         if columns not in self._batch:
             self._batch[columns] = _batch_program(self.static, self.mesh, columns)
-        out = self._batch[columns](batch, *self._args()[1:], self.target)
+        args = (batch, *self._args()[1:], self.target)
+        if self.mesh is not None:
+            # Host values are replicated inputs of a program over devices of several processes.
+            args = jax.tree_util.tree_map(np.asarray, args)
+        out = self._batch[columns](*args)
         return jax.tree_util.tree_map(lambda a: a[:k], out)
 
     def residual_batch(self, Z) -> jax.Array:

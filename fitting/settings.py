@@ -115,10 +115,10 @@ class FitSettings:
         simulator before, and the uncertainty and discretization check after, are not counted.
       population: run the starts together (`fitting.optim.population`), each step of all of them one
         batched evaluation of their Jacobians, sharded over `devices`; every start follows the path it
-        follows alone. None: on when the batch has more than one device or the backend is not the CPU
-        (one CPU device runs a vmapped batch no faster than its starts in turn, docs/performance.md).
-      devices: local devices the population's batch is split over (None: all of them). On the CPU
-        there is one device unless the process asked for more (`jaxfoam fit --devices N` does).
+        follows alone. None: on when the backend is not the CPU or the fit spans several processes
+        (`jax.distributed`); on 2 CPU cores the starts in turn ran faster (docs/performance.md).
+      devices: devices the population's batch is split over (None: all of them). On the CPU there is
+        one device unless the process asked for more (`jaxfoam fit --devices N` does).
       seed: Latin-hypercube seed of the starts (and particle sampling seed).
       pixel_level: pyramid level of the observations (0 = the data's pixels, l = 2^l times larger);
         None picks the coarsest level whose pixels are not larger than the particle spacing.

@@ -38,17 +38,23 @@ class BatchOracle:
         self.live = int(workers)
         self.sizes = None if sizes is None else sorted(int(s) for s in sizes)
         self._cv = threading.Condition()
+        self._local = threading.local()
         self._pending: list = []
         self._results: dict = {}
         self.error: BaseException | None = None
         self.calls = self.rows = self.padded = 0
+
+    def bind(self, index: int) -> None:
+        """Name the calling thread's start (its rows then come in start order in every batch, as a batch
+        split over several processes needs)."""
+        self._local.index = int(index)
 
     def __call__(self, x):
         """Evaluate at x (p,), batched with the other running starts' requests; blocks until done."""
         with self._cv:
             if self.error is not None:
                 raise PopulationStopped("another start of the population failed") from self.error
-            key = object()
+            key = (getattr(self._local, "index", 0), object())
             self._pending.append((key, np.asarray(x)))
             self._run_if_ready()
             while key not in self._results:
@@ -75,7 +81,7 @@ class BatchOracle:
         # Called with the lock held: every running start is waiting, so the batch is complete.
         if not self._pending or len(self._pending) < self.live:
             return
-        batch, self._pending = self._pending, []
+        batch, self._pending = sorted(self._pending, key=lambda item: item[0][0]), []
         X = np.stack([x for _, x in batch])
         k = len(batch)
         size = self._size_for(k)
@@ -111,6 +117,7 @@ def run_population(solve: Callable, starts, oracle: BatchOracle, **kwargs) -> li
 
     def work(i):
         err = None
+        oracle.bind(i)
         try:
             out[i] = solve(starts[i], run=i, **kwargs)
         except BaseException as exc:

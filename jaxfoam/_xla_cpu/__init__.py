@@ -43,6 +43,7 @@ class Tuning:
       jacobian_threads: concurrent groups of forward-mode Jacobian columns (`ForwardMode`'s default).
       batch_fold: under `jax.vmap`, the transfers' scatters and gathers run over the batch's grids laid end
         to end (`jaxfoam._xla_cpu.fold`) instead of with batched indices; forward-mode programs only.
+      fold_batches: whether batched forward-mode programs (a fit's population) switch batch_fold on.
       compiler_options: XLA compiler options of differentiated rollouts, as (name, value) pairs.
     """
 
@@ -52,6 +53,7 @@ class Tuning:
     sort_by_cell: bool = True
     jacobian_threads: int = 2
     batch_fold: bool = False
+    fold_batches: bool = True
     compiler_options: tuple = ()
 
     def __post_init__(self):
@@ -92,7 +94,7 @@ _CPU_OPTIONS = ((("xla_cpu_experimental_ynn_fusion_type", ""),)
 XLA_CPU = Tuning(compiler_options=_CPU_OPTIONS)
 # The plain path: no buffers, unrolled transfers, full-precision solves, no sorting, one Jacobian thread.
 PLAIN = Tuning(buffers=frozenset(), g2p_loop_2d_float32=False, halley_low_precision=False, sort_by_cell=False,
-               jacobian_threads=1)
+               jacobian_threads=1, fold_batches=False)
 
 
 def tuning_for(backend: str | None = None) -> Tuning:

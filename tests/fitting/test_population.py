@@ -67,6 +67,39 @@ def test_population_follows_every_start_sequential_path(tmp_path):
     assert pop.best_index == seq.best_index
 
 
+def test_batch_rows_come_in_start_order():
+    """Whatever order the starts ask in, a batch holds their points in start order (a batch split over
+    several processes is only consistent so)."""
+    import random
+    import threading
+    import time
+    seen = []
+
+    def batch(X):
+        seen.append(np.asarray(X)[:, 0].tolist())
+        return (np.asarray(X),)
+
+    oracle = optim.BatchOracle(batch, 5)
+    rng = random.Random(3)
+    delays = [[rng.random() * 0.02 for _ in range(3)] for _ in range(5)]
+
+    def work(i):
+        oracle.bind(i)
+        try:
+            for d in delays[i]:
+                time.sleep(d)
+                assert oracle(np.array([float(i)]))[0][0] == i
+        finally:
+            oracle.leave()
+
+    threads = [threading.Thread(target=work, args=(i,)) for i in range(5)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert seen == [[0.0, 1.0, 2.0, 3.0, 4.0]] * 3
+
+
 def test_population_resumes_from_its_log(tmp_path):
     """A population stopped by a callback after 3 iterations of start 2 resumes from the log to the
     uninterrupted result, iterate for iterate."""
@@ -176,3 +209,40 @@ def test_sharded_population_fit_equals_single_device_fit():
     for n, v in one["params"].items():
         assert two["params"][n] == pytest.approx(v, rel=1e-10, abs=1e-12)
     assert two["losses"] == pytest.approx(one["losses"], rel=1e-10)
+
+
+def _free_port() -> int:
+    import socket
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.slow
+def test_two_process_fit_equals_single_process_fit(tmp_path):
+    """`jaxfoam fit --coordinator` over two processes on one machine (one CPU device each, collectives
+    over gloo) writes the single-process population fit's parameters to 1e-10; process 1 writes no result."""
+    import json
+    data = synthesize(SLUMP, TRUTH, dx=0.01, frames=4, duration=0.12, noise=0.0, seed=1)
+    path = tmp_path / "slump.h5"
+    data.write(path)
+    common = [sys.executable, "-m", "jaxfoam", "fit", str(path), "--dx", "0.01", "--fix", "eta=5", "--starts", "3",
+              "--max-iter", "3", "--no-dx-check", "--no-plots", "--population", "on"]
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    single = subprocess.run(common + ["--out", str(tmp_path / "one.json")], cwd=root, env=env, capture_output=True,
+                            text=True, timeout=1200)
+    assert single.returncode == 0, single.stderr[-3000:]
+    port = _free_port()
+    procs = [subprocess.Popen(common + ["--out", str(tmp_path / f"two{i}.json"), "--coordinator", f"localhost:{port}",
+                                        "--num-processes", "2", "--process-id", str(i)], cwd=root, env=env,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(2)]
+    outs = [p.communicate(timeout=1200) for p in procs]
+    for p, (_, err) in zip(procs, outs):
+        assert p.returncode == 0, err[-3000:]
+    assert "2 device(s)" in outs[0][0]
+    assert not (tmp_path / "two1.json").exists() and (tmp_path / "two1.fitlog.p1.h5").exists()
+    one = json.loads((tmp_path / "one.json").read_text())
+    two = json.loads((tmp_path / "two0.json").read_text())
+    for n in one["fitted"]:
+        assert two["params"][n] == pytest.approx(one["params"][n], rel=1e-10)
