@@ -176,7 +176,7 @@ def add_fit_parser(subparsers) -> argparse.ArgumentParser:
                     "log of every iteration (<out>.fitlog.h5) that --resume continues.")
     from jaxfoam.cli import add_budget_options, int_at_least, positive_float
 
-    ap.add_argument("data", help="silhouette file (.h5)")
+    ap.add_argument("data", nargs="+", help="silhouette file (.h5); several files of one material: a joint fit")
     ap.add_argument("--out", required=True, help="result file (.json)")
     ap.add_argument("--dx", type=positive_float, default=None,
                     help=f"grid spacing of the fit, m (default: the largest domain extent / {FIT_CELLS[2]} in 2D, "
@@ -324,6 +324,10 @@ def start_processes(args) -> int:
 def run_fit(args) -> int:
     """Run the `fit` subcommand from parsed arguments; returns the exit status."""
     settings = settings_from_args(args)
+    paths = list(args.data) if isinstance(args.data, (list, tuple)) else [args.data]
+    if len(paths) > 1:
+        return run_joint_fit(args, settings, paths)
+    args.data = paths[0]
     rank = start_processes(args)
     request_devices(settings.devices)
     out = Path(args.out)
@@ -370,6 +374,43 @@ def run_fit(args) -> int:
         plot_loss(result, loss_png)
         plot_overlay(problem, result, overlay_png)
         print(f"wrote {loss_png} and {overlay_png}")
+    return 0
+
+
+def run_joint_fit(args, settings: FitSettings, paths) -> int:
+    """`jaxfoam fit a.h5 b.h5 ...`: one material fitted to every recording (`fitting.joint`)."""
+    from .joint import build_joint, calibrate_joint
+    rank = start_processes(args)
+    request_devices(settings.devices)
+    out = Path(args.out)
+    log = Path(args.log) if args.log else default_log_path(out)
+    if rank:
+        log = log.with_name(f"{log.stem}.p{rank}{log.suffix}")
+    for path in paths:
+        check_output(out, "--out", {"the data": path})
+        check_output(log, "--log", {"the data": path, "--out": out})
+    joint = build_joint(paths, settings)
+    if not args.resume and log.exists():
+        log.unlink()
+    lock = threading.Lock()
+
+    def say(msg):
+        with lock:
+            print(msg, flush=True)
+    try:
+        with _terminate_as_interrupt():
+            result = calibrate_joint(None, settings, log=log, resume=args.resume, progress=say, joint=joint)
+    except KeyboardInterrupt as exc:
+        sys.stderr.write(f"\njaxfoam fit: {'terminated' if isinstance(exc, _Terminated) else 'interrupted'}; the fit "
+                         f"log {log} keeps every finished iteration: run the same command with --resume to "
+                         f"continue\n")
+        return 143 if isinstance(exc, _Terminated) else 130
+    if rank:
+        print(f"process {rank}: the fit ended (process 0 writes {out}; this process's log is {log})")
+        return 0
+    result.write(out)
+    print(result.report())
+    print(f"wrote {out} (fit log {log})")
     return 0
 
 

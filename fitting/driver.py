@@ -52,9 +52,10 @@ def judge_reported_intervals(interval: dict, params: dict, transform, identifiab
     return out, notes
 
 
-def use_population(settings: FitSettings, problem: CalibrationProblem) -> bool:
+def use_population(settings: FitSettings, problem) -> bool:
     """Whether a fit runs its starts as a population (`FitSettings.population`; None: when the backend is
-    not the CPU or the fit spans several processes). Sets the problem's devices."""
+    not the CPU or the fit spans several processes). Sets the devices of `problem` (a `CalibrationProblem`
+    or a joint problem)."""
     auto = jax.default_backend() != "cpu" or jax.process_count() > 1
     if settings.population is False or (settings.population is None and not auto):
         return False
@@ -130,7 +131,8 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
     """Fit mu, sigma_y, eta and m (those not fixed) to silhouette data.
 
     Args:
-      data: a `Silhouettes` or the path of a silhouette file.
+      data: a `Silhouettes` or the path of a silhouette file; a list of several: a joint fit of one material
+        to all of them (`fitting.joint.calibrate_joint`, which returns a `JointFitResult`).
       settings: `FitSettings` (default: Levenberg-Marquardt, DEFAULT_STARTS starts, defaults for the rest).
       log: path of the HDF5 fit log (every iteration of every start); None for no log.
       resume: continue the fit recorded in `log` (same data and settings required): finished starts are
@@ -141,6 +143,11 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
       problem: a prebuilt `build_problem(data, settings)` (reuses its simulator).
     Returns a `FitResult`.
     """
+    if isinstance(data, (list, tuple)):
+        if len(data) > 1:
+            from .joint import calibrate_joint
+            return calibrate_joint(data, settings, log=log, resume=resume, progress=progress)
+        data = data[0]
     wall0 = time.perf_counter()
     if not isinstance(data, Silhouettes):
         data = read_silhouettes(data)
