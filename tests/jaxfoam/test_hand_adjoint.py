@@ -95,7 +95,7 @@ def test_p2g_forward_rule_equals_autodiff_jvp_and_transposes(d):
     idx0 = _idx0(x, grid)
     args = (x, mvA, A, mass)
     tangents = tuple(jnp.asarray(rng.normal(size=a.shape)) for a in args)
-    ruled = lambda *a: _joined(_p2g_impl(grid, a[0], idx0, *a[1:]))
+    ruled = lambda *a: _joined(_p2g_impl(grid, False, a[0], idx0, *a[1:]))
     out, t_rule = jax.jvp(ruled, args, tangents)
     out_ad, t_ad = jax.jvp(_p2g_plain(grid, idx0), args, tangents)
     np.testing.assert_array_equal(np.asarray(out), np.asarray(out_ad))
