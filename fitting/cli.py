@@ -328,12 +328,7 @@ def run_fit(args) -> int:
     if len(paths) > 1:
         return run_joint_fit(args, settings, paths)
     args.data = paths[0]
-    rank = start_processes(args)
-    request_devices(settings.devices)
-    out = Path(args.out)
-    log = Path(args.log) if args.log else default_log_path(out)
-    if rank:
-        log = log.with_name(f"{log.stem}.p{rank}{log.suffix}")
+    rank, out, log = _fit_outputs(args, settings)
     check_output(out, "--out", {"the data": args.data})
     check_output(log, "--log", {"the data": args.data, "--out": out})
     data = read_silhouettes(args.data)
@@ -348,26 +343,10 @@ def run_fit(args) -> int:
     if not args.resume and log.exists():
         log.unlink()  # a fresh fit: an old log of this name is replaced
 
-    lock = threading.Lock()
-
-    def say(msg):
-        with lock:  # a population's starts report from their own threads
-            print(msg, flush=True)
-
-    try:
-        with _terminate_as_interrupt():
-            result = calibrate(data, settings, log=log, resume=args.resume, progress=say, problem=problem)
-    except KeyboardInterrupt as exc:
-        sys.stderr.write(f"\njaxfoam fit: {'terminated' if isinstance(exc, _Terminated) else 'interrupted'}; the fit "
-                         f"log {log} keeps every finished iteration: run the same command with --resume to "
-                         f"continue\n")
-        return 143 if isinstance(exc, _Terminated) else 130
-    if rank:
-        print(f"process {rank}: the fit ended (process 0 writes {out}; this process's log is {log})")
-        return 0
-    result.write(out)
-    print(result.report())
-    print(f"wrote {out} (fit log {log})")
+    status, result = _run_logged_fit(
+        lambda say: calibrate(data, settings, log=log, resume=args.resume, progress=say, problem=problem), log, out, rank)
+    if result is None:
+        return status
     if plots:
         loss_png = out.with_name(out.stem + "_loss.png")
         overlay_png = out.with_name(out.stem + "_overlay.png")
@@ -380,38 +359,54 @@ def run_fit(args) -> int:
 def run_joint_fit(args, settings: FitSettings, paths) -> int:
     """`jaxfoam fit a.h5 b.h5 ...`: one material fitted to every recording (`fitting.joint`)."""
     from .joint import build_joint, calibrate_joint
-    rank = start_processes(args)
-    request_devices(settings.devices)
-    out = Path(args.out)
-    log = Path(args.log) if args.log else default_log_path(out)
-    if rank:
-        log = log.with_name(f"{log.stem}.p{rank}{log.suffix}")
+    rank, out, log = _fit_outputs(args, settings)
     for path in paths:
         check_output(out, "--out", {"the data": path})
         check_output(log, "--log", {"the data": path, "--out": out})
     joint = build_joint(paths, settings)
     if not args.resume and log.exists():
         log.unlink()
+    return _run_logged_fit(lambda say: calibrate_joint(None, settings, log=log, resume=args.resume, progress=say,
+                                                       joint=joint), log, out, rank)[0]
+
+
+def _fit_outputs(args, settings: FitSettings):
+    """Join the processes and devices a fit asks for; (this process's index, the result path, its log path:
+    process i > 0 keeps `<log stem>.p<i>.h5`)."""
+    rank = start_processes(args)
+    request_devices(settings.devices)
+    out = Path(args.out)
+    log = Path(args.log) if args.log else default_log_path(out)
+    if rank:
+        log = log.with_name(f"{log.stem}.p{rank}{log.suffix}")
+    return rank, out, log
+
+
+def _run_logged_fit(run, log: Path, out: Path, rank: int):
+    """Run `run(say)`, a fit that keeps its log at `log`, with Ctrl-C and SIGTERM turned into a stop that says
+    how to resume; on process 0 write its result to `out` and print its report. Returns (exit status,
+    the result, or None when it was stopped or this is not process 0)."""
     lock = threading.Lock()
 
     def say(msg):
-        with lock:
+        with lock:  # a population's starts report from their own threads
             print(msg, flush=True)
+
     try:
         with _terminate_as_interrupt():
-            result = calibrate_joint(None, settings, log=log, resume=args.resume, progress=say, joint=joint)
+            result = run(say)
     except KeyboardInterrupt as exc:
         sys.stderr.write(f"\njaxfoam fit: {'terminated' if isinstance(exc, _Terminated) else 'interrupted'}; the fit "
                          f"log {log} keeps every finished iteration: run the same command with --resume to "
                          f"continue\n")
-        return 143 if isinstance(exc, _Terminated) else 130
+        return (143 if isinstance(exc, _Terminated) else 130), None
     if rank:
         print(f"process {rank}: the fit ended (process 0 writes {out}; this process's log is {log})")
-        return 0
+        return 0, None
     result.write(out)
     print(result.report())
     print(f"wrote {out} (fit log {log})")
-    return 0
+    return 0, result
 
 
 # ----------------------------------------------------------------------------------------------
