@@ -227,15 +227,15 @@ def add_fit_parser(subparsers) -> argparse.ArgumentParser:
                          "--fracture density_ratio=0.15")
     ap.add_argument("--population", choices=("auto", "on", "off"), default="auto",
                     help="run the starts together, each step of all of them one batched evaluation of their "
-                         "Jacobians (same results as in turn); auto: on when the backend is not the CPU "
-                         "(default auto)")
+                         "Jacobians (same results as in turn); auto: on when the backend is not the CPU or "
+                         "the fit spans several processes (default auto)")
     ap.add_argument("--devices", type=int_at_least(1), default=None, metavar="N",
                     help="devices the population's batch is split over (default: all; on the CPU, N > 1 "
                          "makes N host devices that share the cores)")
     ap.add_argument("--coordinator", default=None, metavar="HOST:PORT",
                     help="a fit over several processes (hosts): process 0's address; every process runs the same "
                          "command with its --process-id, and the population's batch is split over all their "
-                         "devices (docs/cli.md)")
+                         "devices (docs/calibrate.md)")
     ap.add_argument("--num-processes", type=int_at_least(1), default=None, metavar="N",
                     help="processes of a --coordinator fit")
     ap.add_argument("--process-id", type=int_at_least(0), default=None, metavar="I",
