@@ -192,7 +192,8 @@ class JointFitResult:
             flag = "" if self.identifiable[n] else "  (not identifiable)"
             lines.append(f"{n:<12} {self.params[n]:>10.5g}   [{lo:.4g}, {hi:.4g}]".ljust(50) + share + flag)
         for i, rec in enumerate(self.recordings):
-            lines.append(f"recording {i} ({rec['name']}): loss {rec['loss']:.5g}, noise scale {rec['scale']:.3g}, "
+            label = f"recording {i}" + ("" if rec["name"] == f"recording {i}" else f" ({rec['name']})")
+            lines.append(f"{label}: loss {rec['loss']:.5g}, noise scale {rec['scale']:.3g}, "
                          f"IoU min {min(rec['frame_iou']):.3f}, " + ("reproduced" if rec["reproduced"]
                                                                      else "NOT reproduced"))
         lines.extend(self.notes)
