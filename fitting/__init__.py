@@ -26,7 +26,10 @@ losses (`fitting.silhouette`) and the generic optimizers (`fitting.optim`):
    an estimate of the discretization error of the estimate (`discretization_error`: the residual and
    Jacobian once more on a finer grid), into 95% intervals, returned as a `FitResult`.
 
-The command line is `jaxfoam fit data.h5 --out fit.json` (see `add_fit_parser`).
+5. `fitting.joint`: one material fitted to several recordings (`calibrate([a, b, ...])`);
+   `fitting.design`: candidate recordings ranked by the intervals a fit of them would give (`design`).
+
+The command lines are `jaxfoam fit data.h5 --out fit.json` (see `add_fit_parser`) and `jaxfoam design`.
 A fitter never reads the data's /truth: nothing here touches `Silhouettes.truth`.
 Units: SI throughout (m, s, kg, Pa); fitted coordinates are dimensionless.
 """
@@ -35,8 +38,10 @@ from __future__ import annotations
 from jaxfoam import FIT_FIELDS as FIT_FIELDS
 
 from . import io as io, optim as optim, silhouette as silhouette, synth as synth, track as track
+from . import design as design
 from .check import (combine_intervals as combine_intervals, correlation_area as correlation_area,
                     discretization_error as discretization_error, fit_uncertainty as fit_uncertainty)
+from .design import DesignResult as DesignResult
 from .driver import (calibrate as calibrate, default_log_path as default_log_path,
                      judge_reported_intervals as judge_reported_intervals, make_starts as make_starts,
                      silhouette_mismatch as silhouette_mismatch)
@@ -52,9 +57,9 @@ from .synth import synthesize as synthesize
 from .track import track_video as track_video
 
 __all__ = [
-    "Camera", "CalibrationError", "CalibrationProblem", "DEFAULT_BOUNDS", "FIT_FIELDS", "FitResult", "FitSettings", "NUISANCE_FIELDS",
+    "Camera", "CalibrationError", "CalibrationProblem", "DEFAULT_BOUNDS", "DesignResult", "FIT_FIELDS", "FitResult", "FitSettings", "NUISANCE_FIELDS",
     "SilhouetteFormatError", "Silhouettes", "build_problem", "calibrate", "combine_intervals", "correlation_area",
-    "default_log_path", "discretization_error", "fit_transform", "fit_uncertainty", "fitted_occupancy", "io",
+    "default_log_path", "design", "discretization_error", "fit_transform", "fit_uncertainty", "fitted_occupancy", "io",
     "judge_reported_intervals", "make_starts", "optim", "plot_loss", "plot_overlay", "read_silhouettes",
     "silhouette", "silhouette_mismatch", "synth", "synthesize", "track", "track_video", "write_silhouettes",
 ]

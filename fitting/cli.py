@@ -1,4 +1,4 @@
-"""The command lines of `jaxfoam fit`, `jaxfoam track` and `jaxfoam synth`: option parsers, settings from
+"""The command lines of `jaxfoam fit`, `jaxfoam design`, `jaxfoam track` and `jaxfoam synth`: option parsers, settings from
 arguments, signal handling. `jaxfoam.cli` adds these subcommands when it builds its parser."""
 from __future__ import annotations
 
@@ -407,6 +407,92 @@ def _run_logged_fit(run, log: Path, out: Path, rank: int):
     print(result.report())
     print(f"wrote {out} (fit log {log})")
     return 0, result
+
+
+# ----------------------------------------------------------------------------------------------
+# jaxfoam design
+# ----------------------------------------------------------------------------------------------
+
+def add_design_parser(subparsers) -> argparse.ArgumentParser:
+    """Add the `design` subcommand to an argparse subparsers object (runs via args.func(args))."""
+    from jaxfoam.cli import float_in, int_at_least, positive_float
+    from .design import (DEFAULT_DURATION, DEFAULT_FPS, DEFAULT_LEVELS, DEFAULT_POINTS, DEFAULT_SPREAD,
+                         DERIVED_VARIABLES, RECORDING_VARIABLES, ROBUST)
+
+    named = "; ".join([f"{k} ({u})" for k, u in RECORDING_VARIABLES.items()]
+                      + [f"{k} ({u.split(',')[0]})" for k, u in DERIVED_VARIABLES.items()])
+    ap = subparsers.add_parser(
+        "design", help="rank candidate recordings by the intervals a fit of them would give",
+        description="Predict, for every combination of the --vary values, the 95%% intervals a fit of that "
+                    "recording (with the --with recordings already made) would report, at the guess and at "
+                    "parameter points around it; write the ranking, the best candidate's scene and a chart. "
+                    "See docs/calibrate.md, 'Designing the next recording'.")
+    ap.add_argument("scene", help="scene JSON file (initial_shape box or ellipse)")
+    ap.add_argument("--guess", required=True, help="mu=..,sigma_y=..,eta=..,m=.. (Pa, Pa, Pa s^m, -): the expected material")
+    ap.add_argument("--vary", action="append", required=True, metavar="NAME=LO:HI[:N]|NAME=V1,V2,...",
+                    help=f"a design variable and its values (repeat for more): {named}; or a path to a number in "
+                         f"the scene, e.g. plate.motion.frequency")
+    ap.add_argument("--with", dest="with_data", nargs="+", default=[], metavar="DATA.h5",
+                    help="recordings already made of the same material (joint with every candidate)")
+    ap.add_argument("--out", required=True, help="result file (.json); the best scene goes to <out>.scene.json")
+    ap.add_argument("--levels", type=int_at_least(2), default=DEFAULT_LEVELS,
+                    help=f"values of a LO:HI range (default {DEFAULT_LEVELS})")
+    ap.add_argument("--points", type=int_at_least(1), default=DEFAULT_POINTS,
+                    help=f"parameter points per candidate, the guess first (default {DEFAULT_POINTS})")
+    ap.add_argument("--spread", type=float_in(1.0, lo_open=True), default=DEFAULT_SPREAD,
+                    help=f"the points' factor from the guess (m: +-0.15) (default {DEFAULT_SPREAD})")
+    ap.add_argument("--robust", choices=ROBUST, default="worst", help="over the points (default worst)")
+    ap.add_argument("--duration", type=positive_float, default=DEFAULT_DURATION,
+                    help=f"recorded time, s, unless varied (default {DEFAULT_DURATION:g})")
+    ap.add_argument("--fps", type=positive_float, default=DEFAULT_FPS,
+                    help=f"frame rate, 1/s, unless varied (default {DEFAULT_FPS:g})")
+    ap.add_argument("--pixel-size", type=positive_float, default=None, help="m per pixel unless varied (default dx / 2)")
+    ap.add_argument("--dx", type=positive_float, default=None, help="grid spacing of the predicted fits, m (default: the fit's)")
+    ap.add_argument("--ppc", type=int_at_least(1), default=None, help="particles per cell (default: the fit's)")
+    ap.add_argument("--fix", default=None, help="known values, e.g. m=1 (that parameter is not predicted)")
+    ap.add_argument("--seed", type=int_at_least(0), default=0, help="seed of particle sampling and pixel noise")
+    ap.add_argument("--dtype", choices=("float32", "float64"), default=FIT_DTYPE)
+    ap.add_argument("--no-plots", action="store_true", help="skip the chart")
+    ap.set_defaults(func=run_design)
+    return ap
+
+
+def run_design(args) -> int:
+    """Run the `design` subcommand from parsed arguments; returns the exit status."""
+    from .design import design, parse_vary
+    from .plots import plot_design
+
+    out = Path(args.out)
+    if out.suffix != ".json":
+        raise CalibrationError(f"--out must name a .json file, got {args.out!r}")
+    scene_out = out.with_name(out.stem + ".scene.json")
+    chart = out.with_name(out.stem + ".png")
+    inputs = {"the scene": args.scene, **{f"--with {p}": p for p in args.with_data}}
+    for path, option in ((out, "--out"), (scene_out, "--out (its scene)"), (chart, "--out (its chart)")):
+        check_output(path, option, inputs)
+    guess = parse_params(args.guess)
+    variables = [parse_vary(v, args.levels) for v in args.vary]
+    settings = FitSettings(dx=args.dx, ppc=args.ppc, fixed=parse_fixed(args.fix), seed=args.seed,
+                           dtype=args.dtype, dx_check=False).validate()
+    plots = not args.no_plots
+    if plots and missing_modules("matplotlib"):
+        print("jaxfoam design: note: matplotlib is not installed, so the chart is skipped (install the viz "
+              "extra: pip install 'jaxfoam[viz]')", flush=True)
+        plots = False
+    result = design(args.scene, guess, variables, with_data=args.with_data, settings=settings, points=args.points,
+                    spread=args.spread, robust=args.robust, duration=args.duration, fps=args.fps,
+                    pixel_size=args.pixel_size, progress=lambda m: print(m, flush=True))
+    result.write(out)
+    result.write_scene(scene_out)
+    print(result.report())
+    rec = result.best["recording"]
+    synth = (f"jaxfoam synth {scene_out} --params {args.guess} --frames {rec['frames']} --duration {rec['duration']:g}"
+             + (f" --pixel-size {rec['pixel_size']:g}" if rec.get("pixel_size") else "") + " --out predicted.h5")
+    print(f"wrote {out} and {scene_out} ({result.wall_time:.0f} s); to simulate the recommended recording: {synth}")
+    if plots:
+        plot_design(result, chart)
+        print(f"wrote {chart}")
+    return 0
 
 
 # ----------------------------------------------------------------------------------------------

@@ -135,6 +135,35 @@ class JointProblem:
         return out
 
 
+def noise_scales(joint: JointProblem, parts) -> np.ndarray:
+    """Per-recording noise scales s_i (geometric mean 1, so the loss keeps its size): the RMS of each
+    recording's residual r_i over its effective number of independent residuals; parts: (r_i, J_i)."""
+    scales = [math.sqrt(float(r @ r) / joint.n_effective(i, r)) if np.any(r) else 1.0
+              for i, (r, _) in enumerate(parts)]
+    return np.asarray(scales) / np.exp(np.mean(np.log(scales)))
+
+
+def joint_uncertainty(joint: JointProblem, parts, z, level: float):
+    """The Gauss-Newton `fitting.optim.Uncertainty` of the noise-scaled stacked residual at joint
+    coordinates z, with the recordings' effective residual counts summed; parts: (r_i, J_i)."""
+    r, J = joint.stack(parts)
+    keep = (r != 0) | np.any(J != 0, axis=1)
+    n_eff = sum(joint.n_effective(i, ri) for i, (ri, _) in enumerate(parts))
+    n_eff = min(float(keep.sum()), max(n_eff, len(joint.names) + 1.0))
+    return optim.gauss_newton_uncertainty(r[keep], J[keep], np.asarray(z, np.float64), joint.transform,
+                                          n_eff=n_eff, level=level)
+
+
+def information_shares(joint: JointProblem, parts) -> np.ndarray:
+    """(recordings, parameters): each recording's share of the diagonal of the Fisher information
+    J^T W J (columns sum to 1); parts: (r_i, J_i)."""
+    info = np.stack([np.sum(np.square(J_i / s), axis=0) for (_, J_i), s in zip(parts, joint.scales)])
+    full = np.zeros((len(parts), len(joint.names)))
+    for i, idx in enumerate(joint.index):
+        full[i, idx] = info[i]
+    return full / np.maximum(full.sum(axis=0, keepdims=True), np.finfo(float).tiny)
+
+
 def build_joint(datas, settings: FitSettings | None = None) -> JointProblem:
     """Bind every recording to its simulator with the shared settings; the densities must agree."""
     settings = (settings or FitSettings()).validate()
@@ -271,10 +300,7 @@ def calibrate_joint(datas, settings: FitSettings | None = None, *, log=None, res
         lows = [float(np.min(s.history.loss)) if len(s.history.loss) else math.inf for s in ms.solutions]
         best = ms.solutions[int(np.argmin(lows))]
         z1 = np.asarray(best.history.x[int(np.argmin(best.history.loss))])
-        parts = joint.parts(z1)
-        scales = [math.sqrt(float(r @ r) / joint.n_effective(i, r)) if np.any(r) else 1.0
-                  for i, (r, _) in enumerate(parts)]
-        scales = np.asarray(scales) / np.exp(np.mean(np.log(scales)))  # geometric mean 1: the loss keeps its size
+        scales = noise_scales(joint, joint.parts(z1))
         joint.set_scales(scales)
         say("noise scales per recording: " + ", ".join(f"{s:.3g}" for s in scales))
         spent = time.perf_counter() - wall0
@@ -290,20 +316,13 @@ def calibrate_joint(datas, settings: FitSettings | None = None, *, log=None, res
     parts = joint.parts(z)
     r, J = joint.stack(parts)
     keep = (r != 0) | np.any(J != 0, axis=1)
-    n_eff = sum(joint.n_effective(i, ri) for i, (ri, _) in enumerate(parts))
-    n_eff = min(float(keep.sum()), max(n_eff, len(names) + 1.0))
-    unc = optim.gauss_newton_uncertainty(r[keep], J[keep], z, tr, n_eff=n_eff, level=settings.level)
+    unc = joint_uncertainty(joint, parts, z, settings.level)
     params = joint.params_of(z)
     stat = {n: tuple(float(v) for v in unc.interval[k]) for k, n in enumerate(names)}
     interval = dict(stat)
     numerical = {n: 0.0 for n in names}
     notes = list(unc.messages)
-    # Information: each recording's share of the diagonal of J^T W J, per parameter.
-    info = np.stack([np.sum(np.square(J_i / s), axis=0) for (_, J_i), s in zip(parts, joint.scales)])
-    full = np.zeros((len(parts), len(names)))
-    for i, idx in enumerate(joint.index):
-        full[i, idx] = info[i]
-    share = full / np.maximum(full.sum(axis=0, keepdims=True), np.finfo(float).tiny)
+    share = information_shares(joint, parts)
     if settings.dx_check:
         refit = DEFAULT_DX_REFIT[joint.problems[0].scene.dim] if settings.dx_refit is None else int(settings.dx_refit)
         Jw = J[keep]

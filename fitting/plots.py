@@ -73,3 +73,41 @@ def plot_overlay(problem: CalibrationProblem, result: FitResult, path, n_panels:
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
+
+
+def plot_design(result, path) -> None:
+    """Predicted 95% half-widths over the tolerance (`fitting.design.TOLERANCE`) per parameter for every
+    candidate of a `DesignResult`, best first (log scale; 1 is the tolerance); PNG at `path`."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .design import TOLERANCE
+
+    cands = result.candidates
+    names = list(result.guess_names)
+    k = len(cands)
+    fig, ax = plt.subplots(figsize=(max(5.5, 0.45 * k * len(names) / 2 + 2), 3.8), dpi=110)
+    width = 0.8 / len(names)
+    x = np.arange(k)
+    for j, n in enumerate(names):
+        ratio = np.array([c["half_width"][n] / TOLERANCE[n] for c in cands], float)
+        ratio = np.where(np.isfinite(ratio), ratio, np.nan)
+        ax.bar(x + (j - (len(names) - 1) / 2) * width, ratio, width, label=n)
+    ax.axhline(1.0, color="k", lw=1, ls="--", label="tolerance")
+    ax.set_yscale("log")
+    ax.set_xticks(x)
+    ax.set_xticklabels([f"{i + 1}" for i in range(k)])
+    ax.set_xlabel("candidate (rank; values in the design's JSON)")
+    ax.set_ylabel("predicted half-width / tolerance")
+    ax.set_title(f"jaxfoam design: {result.robust} over {len(result.points)} parameter points", fontsize=9)
+    ax.grid(True, axis="y", which="both", alpha=0.3)
+    ax.legend(fontsize=7, ncol=len(names) + 1)
+    fig.tight_layout()
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    from jaxfoam.guards import atomic_output
+
+    with atomic_output(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)

@@ -2,6 +2,7 @@
 residual and its forward-mode Jacobian."""
 from __future__ import annotations
 
+import copy
 import dataclasses
 import functools
 import hashlib
@@ -301,6 +302,39 @@ class CalibrationProblem:
         r, cols = threaded_columns(run, p, self.jacobian_threads, self.sim.dtype, self._columns_compiled)
         self._columns_compiled = True
         return r, cols.T
+
+    def with_scene(self, scene) -> "CalibrationProblem":
+        """A copy whose rollouts use `scene`'s differentiable data (plate motions, gravity, floor friction)
+        with this problem's compiled programs, grid, substeps and initial state. `scene` must have this
+        scene's structure (same plates, motion types and sample counts); ValueError otherwise."""
+        model = self.sim.model
+        old = (model.scene.gravity, model.scene.plates, model.scene.floor_friction)
+        new = (scene.gravity, scene.plates, scene.floor_friction)
+        shapes = lambda tree: jax.tree_util.tree_map(lambda a: (jnp.shape(a), jnp.result_type(a)), tree)
+        if (jax.tree_util.tree_structure(old) != jax.tree_util.tree_structure(new)
+                or shapes(old) != shapes(new)):
+            raise ValueError("scene: its plates, motion types or sample counts differ from the problem's scene; "
+                             "build a problem for it instead")
+        out = copy.copy(self)
+        out.sim = copy.copy(self.sim)
+        out.sim.model = model.replace(scene=dataclasses.replace(model.scene, gravity=scene.gravity, plates=scene.plates,
+                                                                floor_friction=scene.floor_friction))
+        out.sim.scene = out.scene = out.sim.model.scene
+        return out
+
+    def with_observations(self, data: Silhouettes) -> "CalibrationProblem":
+        """A copy that compares with `data` (same camera, image size and frame times as this problem's
+        data) at this problem's pixel level and frames; copies made this way share one compiled residual
+        (boundary points padded to `silhouette.MAX_BOUNDARY_POINTS` per frame)."""
+        if (data.shape != self.data.shape or not np.array_equal(data.times, self.data.times)
+                or data.camera.as_dict() != self.data.camera.as_dict()):
+            raise ValueError("data: its camera, image size or frame times differ from the problem's data")
+        out = copy.copy(self)
+        out.data = data
+        masks, weights, _ = pyramid(without_plate_pixels(data, self.scene), self.pixel_level + 1)[self.pixel_level]
+        out.masks, out.weights = masks[self.frames], weights[self.frames]
+        out.target = make_target(out.masks, out.weights, self.camera, dtype=self.sim.dtype, pad=True)
+        return out
 
     def loss(self, z) -> float:
         r = np.asarray(self.residual(z))

@@ -434,14 +434,16 @@ class SilhouetteTarget:
 
 
 def make_target(masks, weights, camera: Camera, max_points: int = MAX_BOUNDARY_POINTS,
-                dtype=jnp.float64) -> SilhouetteTarget:
-    """Prepare observed masks (T, H, W) (0/1 or soft coverage) and weights (T, H, W) for the losses."""
+                dtype=jnp.float64, pad: bool = False) -> SilhouetteTarget:
+    """Prepare observed masks (T, H, W) (0/1 or soft coverage) and weights (T, H, W) for the losses.
+    pad: boundary points padded to max_points per frame, so targets of other data have the same shapes
+    (one compiled residual; padding rows add zeros)."""
     masks = np.asarray(masks, float)
     weights = np.broadcast_to(np.asarray(weights, float), masks.shape)
     T = masks.shape[0]
     dist = np.stack([outside_distance(masks[t], weights[t]) for t in range(T)])
     pts = [boundary_points(masks[t], weights[t], camera, max_points) for t in range(T)]
-    M = max(1, max(n for _, n in pts))
+    M = max_points if pad else max(1, max(n for _, n in pts))
     points = np.zeros((T, M, 2))
     pw = np.zeros((T, M))
     for t, (p, n) in enumerate(pts):

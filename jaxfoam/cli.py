@@ -479,10 +479,11 @@ def build_parser(argv=None) -> argparse.ArgumentParser:
     command = next((a for a in (sys.argv[1:] if argv is None else argv) if not a.startswith("-")), None)
     if command in SIMULATOR_COMMANDS:
         return parser
-    from fitting.cli import add_fit_parser, add_synth_parser, add_track_parser
+    from fitting.cli import add_design_parser, add_fit_parser, add_synth_parser, add_track_parser
     add_synth_parser(sub)
     add_track_parser(sub)
     add_fit_parser(sub)
+    add_design_parser(sub)
     return parser
 
 
