@@ -452,6 +452,8 @@ def add_design_parser(subparsers) -> argparse.ArgumentParser:
     ap.add_argument("--fix", default=None, help="known values, e.g. m=1 (that parameter is not predicted)")
     ap.add_argument("--seed", type=int_at_least(0), default=0, help="seed of particle sampling and pixel noise")
     ap.add_argument("--dtype", choices=("float32", "float64"), default=FIT_DTYPE)
+    ap.add_argument("--resume", action="store_true",
+                    help="take the candidates already evaluated from the design log <out>.designlog.json")
     ap.add_argument("--no-plots", action="store_true", help="skip the chart")
     ap.set_defaults(func=run_design)
     return ap
@@ -467,8 +469,10 @@ def run_design(args) -> int:
         raise CalibrationError(f"--out must name a .json file, got {args.out!r}")
     scene_out = out.with_name(out.stem + ".scene.json")
     chart = out.with_name(out.stem + ".png")
+    log = out.with_name(out.stem + ".designlog.json")
     inputs = {"the scene": args.scene, **{f"--with {p}": p for p in args.with_data}}
-    for path, option in ((out, "--out"), (scene_out, "--out (its scene)"), (chart, "--out (its chart)")):
+    for path, option in ((out, "--out"), (scene_out, "--out (its scene)"), (chart, "--out (its chart)"),
+                         (log, "--out (its log)")):
         check_output(path, option, inputs)
     guess = parse_params(args.guess)
     variables = [parse_vary(v, args.levels) for v in args.vary]
@@ -479,9 +483,19 @@ def run_design(args) -> int:
         print("jaxfoam design: note: matplotlib is not installed, so the chart is skipped (install the viz "
               "extra: pip install 'jaxfoam[viz]')", flush=True)
         plots = False
-    result = design(args.scene, guess, variables, with_data=args.with_data, settings=settings, points=args.points,
-                    spread=args.spread, robust=args.robust, duration=args.duration, fps=args.fps,
-                    pixel_size=args.pixel_size, progress=lambda m: print(m, flush=True))
+    if not args.resume and log.exists():
+        log.unlink()  # a fresh design: an old log of this name is replaced
+    try:
+        with _terminate_as_interrupt():
+            result = design(args.scene, guess, variables, with_data=args.with_data, settings=settings,
+                            points=args.points, spread=args.spread, robust=args.robust, duration=args.duration,
+                            fps=args.fps, pixel_size=args.pixel_size, progress=lambda m: print(m, flush=True),
+                            log=log, resume=args.resume)
+    except KeyboardInterrupt as exc:
+        sys.stderr.write(f"\njaxfoam design: {'terminated' if isinstance(exc, _Terminated) else 'interrupted'}; "
+                         f"the design log {log} keeps every finished candidate: run the same command with "
+                         f"--resume to continue\n")
+        return 143 if isinstance(exc, _Terminated) else 130
     result.write(out)
     result.write_scene(scene_out)
     print(result.report())

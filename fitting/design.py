@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import hashlib
 import itertools
 import json
 import math
@@ -33,7 +34,7 @@ from jaxfoam.guards import atomic_output
 
 from .io import Silhouettes, camera_covering, plate_footprint, read_silhouettes, validate
 from .joint import JointProblem, information_shares, joint_uncertainty, noise_scales
-from .problem import build_problem
+from .problem import _data_fingerprint, build_problem
 from .settings import CalibrationError, FIT_CELLS, FIT_PPC, FitSettings, NUISANCE_FIELDS
 from .synth import boundary_pixels, hard_masks
 
@@ -432,7 +433,7 @@ def _advice(best: dict, names, with_only_hw: dict | None, with_labels) -> str:
 def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings | None = None,
            points: int = DEFAULT_POINTS, spread: float = DEFAULT_SPREAD, robust: str = "worst",
            duration: float = DEFAULT_DURATION, fps: float = DEFAULT_FPS, pixel_size: float | None = None,
-           progress: Callable[[str], None] | None = None) -> DesignResult:
+           progress: Callable[[str], None] | None = None, log=None, resume: bool = False) -> DesignResult:
     """Rank the candidate recordings of `scene` by their predicted 95% intervals (module docs).
 
     Args:
@@ -444,6 +445,9 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
       points, spread: the parameter points (`parameter_points`); robust: "worst" or "mean" over them.
       duration (s), fps (1/s), pixel_size (m, default dx / 2): each candidate's recording unless varied.
       progress: optional callable(str) for status lines.
+      log: a JSON file that receives each candidate's prediction as it finishes (written atomically);
+        resume: take the candidates found there instead of evaluating them again (the log must be of the
+        same design: CalibrationError otherwise).
     Returns a `DesignResult`, candidates best first: most parameters within TOLERANCE, then the lowest
     geometric mean of half-width over tolerance. Raises CalibrationError for bad input before any simulation.
     """
@@ -493,6 +497,13 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
         raise CalibrationError(f"density: the scene and the recordings give {rho} kg/m^3; one material has one "
                                f"density (set it with fix rho=...)")
     say(f"{len(candidates)} candidates x {len(pts)} parameter points")
+    fingerprint = hashlib.sha256(json.dumps(
+        [spec, guess, [[v.name, list(v.values)] for v in variables], pts, robust, duration, fps, pixel_size,
+         settings.to_dict(), DESIGN_NOISE, [_data_fingerprint(d) for d in with_data]],
+        sort_keys=True, default=str).encode()).hexdigest()[:16]
+    done = _read_log(log, fingerprint) if (log is not None and resume) else {}
+    if done:
+        say(f"resuming: {len(done)} of {len(candidates)} candidates from {log}")
 
     # Recordings already made: their noise from their residual at the guess, their Jacobian at each point.
     made = []
@@ -517,11 +528,17 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
     for c in candidates:
         groups.setdefault(_structure(c["scene"], c["recording"]), []).append(c)
     for gi, members in enumerate(groups.values()):
+        for c in members:
+            c.update(done.get(_key(c), {}))
+        if all("score" in c for c in members):
+            continue
         template = max(members, key=lambda c: load_scene(c["scene"]).max_plate_speed())
         base = build_problem(_layout(template["scene"], template["recording"], settings, dtype), settings)
         say(f"group {gi + 1}/{len(groups)}: {len(members)} candidate(s) on one compiled rollout (dx = {base.dx:.4g} m, "
             f"{int(np.sum(base.sim.state0.active))} particles, {len(base.frames)} frames)")
         for c in members:
+            if "score" in c:
+                continue
             t0 = time.perf_counter()
             pb_c = base.with_scene(load_scene(c["scene"], dtype=dtype))
             per_point, share = [], None
@@ -545,6 +562,9 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
             c.update(predicted=per_point, half_width=agg, within=[n for n in names if ratio[n] <= 1.0],
                      score=float(np.exp(np.mean(np.log(np.maximum([ratio[n] for n in names], 1e-300))))),
                      information_share=share, wall_time=time.perf_counter() - t0)
+            if log is not None:
+                done[_key(c)] = {k: c[k] for k in _RESULT_KEYS}
+                _write_log(log, fingerprint, done)
             say(f"  {c['values']}: " + ", ".join(f"{n} +-{_fmt_hw(n, agg[n])}" for n in names)
                 + f" ({c['wall_time']:.1f} s)")
     candidates.sort(key=lambda c: (-len(c["within"]), c["score"] if math.isfinite(c["score"]) else math.inf))
@@ -555,6 +575,34 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
     return DesignResult(guess=guess, points=pts, variables={v.name: list(v.values) for v in variables}, robust=robust,
                         candidates=candidates, with_only=with_only, advice=advice,
                         wall_time=time.perf_counter() - wall0, settings=out_settings)
+
+
+_RESULT_KEYS = ("predicted", "half_width", "within", "score", "information_share", "wall_time")
+
+
+def _key(candidate: dict) -> str:
+    return json.dumps(candidate["values"], sort_keys=True)
+
+
+def _read_log(path, fingerprint: str) -> dict:
+    """The candidates' results in a design log (empty when there is none)."""
+    path = Path(path)
+    if not path.exists():
+        return {}
+    try:
+        log = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise CalibrationError(f"design log {str(path)!r}: not readable as JSON ({exc})") from exc
+    if log.get("format") != "jaxfoam-design-log" or log.get("fingerprint") != fingerprint:
+        raise CalibrationError(f"design log {str(path)!r} was written by another design (scene, guess, variables, "
+                               f"settings or recordings differ); remove it or run without resume")
+    return dict(log["candidates"])
+
+
+def _write_log(path, fingerprint: str, done: dict) -> None:
+    with atomic_output(path) as tmp:
+        Path(tmp).write_text(json.dumps(dict(format="jaxfoam-design-log", fingerprint=fingerprint, candidates=done),
+                                        allow_nan=True))
 
 
 def _ppc(settings: FitSettings, problem) -> int:

@@ -234,3 +234,29 @@ def test_design_command_writes_ranking_scene_and_chart(tmp_path, capsys):
     assert (tmp_path / "design.png").stat().st_size > 1000
     assert "jaxfoam synth" in capsys.readouterr().out
     assert main(args[:5] + ["plate.motion.nope=1,2"] + args[6:]) == 2
+
+
+@pytest.mark.slow
+def test_killed_design_resumes_losing_nothing(tmp_path):
+    """A design stopped after its first candidate resumes from its log: it evaluates only the rest, and its
+    ranking equals an uninterrupted design's; a log of another design is refused."""
+    log = tmp_path / "design.designlog.json"
+    variables = ["plate.motion.amplitude=0.005,0.02"]
+    kw = dict(settings=ONE, points=1, duration=0.3)
+
+    def stop_after_first(msg):
+        if msg.startswith("  {"):
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        design(PLATE, TRUTH, variables, log=log, progress=stop_after_first, **kw)
+    assert len(json.loads(log.read_text())["candidates"]) == 1
+    lines = []
+    resumed = design(PLATE, TRUTH, variables, log=log, resume=True, progress=lines.append, **kw)
+    assert sum(m.startswith("  {") for m in lines) == 1
+    full = design(PLATE, TRUTH, variables, **kw)
+    assert [c["values"] for c in resumed.candidates] == [c["values"] for c in full.candidates]
+    for a, b in zip(resumed.candidates, full.candidates):
+        assert a["half_width"]["sigma_y"] == pytest.approx(b["half_width"]["sigma_y"], rel=1e-9)
+    with pytest.raises(CalibrationError, match="another design"):
+        design(PLATE, dict(TRUTH, sigma_y=30.0), variables, log=log, resume=True, **kw)
