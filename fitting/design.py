@@ -384,8 +384,11 @@ class DesignResult:
     def report(self) -> str:
         names = list(self.guess_names)
         head = f"{'rank':>4}  " + "  ".join(f"{n:>9}" for n in names) + "  within  " + ", ".join(self.variables)
-        lines = [f"predicted 95% half-widths ({self.robust} over {len(self.points)} parameter points; relative for "
-                 f"{', '.join(n for n in names if n not in ABSOLUTE)}, absolute for m)", head]
+        rel = [n for n in names if n not in ABSOLUTE]
+        kinds = ([f"relative for {', '.join(rel)}"] if rel else []) + (
+            [f"absolute for {', '.join(n for n in names if n in ABSOLUTE)}"] if len(rel) < len(names) else [])
+        lines = [f"predicted 95% half-widths ({self.robust} over {len(self.points)} parameter points; "
+                 f"{', '.join(kinds)})", head]
         for k, c in enumerate(self.candidates):
             hw = "  ".join(f"{_fmt_hw(n, c['half_width'][n]):>9}" for n in names)
             vals = ", ".join(f"{v:g}" for v in c["values"].values())

@@ -260,3 +260,15 @@ def test_killed_design_resumes_losing_nothing(tmp_path):
         assert a["half_width"]["sigma_y"] == pytest.approx(b["half_width"]["sigma_y"], rel=1e-9)
     with pytest.raises(CalibrationError, match="another design"):
         design(PLATE, dict(TRUTH, sigma_y=30.0), variables, log=log, resume=True, **kw)
+
+
+@pytest.mark.slow
+def test_design_in_3d():
+    """One implementation for 2D and 3D: the 3D hanging plate's candidates share a rollout and get finite,
+    informative predictions, the faster plate first."""
+    res = design(zoo_scene("hanging_plate", 3), TRUTH, ["plate.motion.amplitude=0.005,0.02"], points=1, duration=0.2,
+                 settings=FitSettings(dx=0.03, fixed={"mu": 150.0, "eta": 5.0, "m": 0.6}, dx_check=False))
+    hw = [c["half_width"]["sigma_y"] for c in res.candidates]
+    assert all(0 < v < 1 for v in hw) and hw == sorted(hw)
+    assert res.best["values"]["plate.motion.amplitude"] == 0.02
+    assert "relative for sigma_y)" in res.report()
