@@ -417,7 +417,7 @@ def add_design_parser(subparsers) -> argparse.ArgumentParser:
     """Add the `design` subcommand to an argparse subparsers object (runs via args.func(args))."""
     from jaxfoam.cli import float_in, int_at_least, positive_float
     from .design import (DEFAULT_DURATION, DEFAULT_FPS, DEFAULT_LEVELS, DEFAULT_POINTS, DEFAULT_SPREAD,
-                         DERIVED_VARIABLES, RECORDING_VARIABLES, ROBUST)
+                         DERIVED_VARIABLES, RECORDING_VARIABLES, ROBUST, SAMPLINGS)
 
     named = "; ".join([f"{k} ({u})" for k, u in RECORDING_VARIABLES.items()]
                       + [f"{k} ({u.split(',')[0]})" for k, u in DERIVED_VARIABLES.items()])
@@ -442,6 +442,9 @@ def add_design_parser(subparsers) -> argparse.ArgumentParser:
     ap.add_argument("--spread", type=float_in(1.0, lo_open=True), default=DEFAULT_SPREAD,
                     help=f"the points' factor from the guess (m: +-0.15) (default {DEFAULT_SPREAD})")
     ap.add_argument("--robust", choices=ROBUST, default="worst", help="over the points (default worst)")
+    ap.add_argument("--sampling", choices=SAMPLINGS, default="same",
+                    help="render the predicted recording from the fit's own particle sampling or from another "
+                         "(default same)")
     ap.add_argument("--duration", type=positive_float, default=DEFAULT_DURATION,
                     help=f"recorded time, s, unless varied (default {DEFAULT_DURATION:g})")
     ap.add_argument("--fps", type=positive_float, default=DEFAULT_FPS,
@@ -490,7 +493,7 @@ def run_design(args) -> int:
             result = design(args.scene, guess, variables, with_data=args.with_data, settings=settings,
                             points=args.points, spread=args.spread, robust=args.robust, duration=args.duration,
                             fps=args.fps, pixel_size=args.pixel_size, progress=lambda m: print(m, flush=True),
-                            log=log, resume=args.resume)
+                            log=log, resume=args.resume, sampling=args.sampling)
     except KeyboardInterrupt as exc:
         sys.stderr.write(f"\njaxfoam design: {'terminated' if isinstance(exc, _Terminated) else 'interrupted'}; "
                          f"the design log {log} keeps every finished candidate: run the same command with "

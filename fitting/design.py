@@ -51,6 +51,9 @@ DEFAULT_POINTS = 3
 DEFAULT_SPREAD = 1.5
 M_SPREAD = 0.15
 ROBUST = ("worst", "mean")
+# Whose particles make the predicted recording: the fit's own ("same": the noise is the renderer's and the
+# boundary flips'), or a second sampling ("other": the misfit of another discretization of the material too).
+SAMPLINGS = ("same", "other")
 # Boundary-pixel flip probability of the predicted recordings: synth's default, about the tracking
 # error measured on rendered videos (docs/data.md).
 DESIGN_NOISE = 0.05
@@ -436,7 +439,8 @@ def _advice(best: dict, names, with_only_hw: dict | None, with_labels) -> str:
 def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings | None = None,
            points: int = DEFAULT_POINTS, spread: float = DEFAULT_SPREAD, robust: str = "worst",
            duration: float = DEFAULT_DURATION, fps: float = DEFAULT_FPS, pixel_size: float | None = None,
-           progress: Callable[[str], None] | None = None, log=None, resume: bool = False) -> DesignResult:
+           progress: Callable[[str], None] | None = None, log=None, resume: bool = False,
+           sampling: str = "same") -> DesignResult:
     """Rank the candidate recordings of `scene` by their predicted 95% intervals (module docs).
 
     Args:
@@ -448,6 +452,8 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
       points, spread: the parameter points (`parameter_points`); robust: "worst" or "mean" over them.
       duration (s), fps (1/s), pixel_size (m, default dx / 2): each candidate's recording unless varied.
       progress: optional callable(str) for status lines.
+      sampling: "same" or "other" (`SAMPLINGS`): the predicted recording is rendered from the fit's own
+        particle sampling, or from a second one (seed + 1).
       log: a JSON file that receives each candidate's prediction as it finishes (written atomically);
         resume: take the candidates found there instead of evaluating them again (the log must be of the
         same design: CalibrationError otherwise).
@@ -468,6 +474,8 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
         lo, hi = settings.bounds_of(n)
         if not lo < float(guess[n]) < hi:
             raise CalibrationError(f"guess: {n} = {guess[n]:g} lies outside its bounds ({lo:g}, {hi:g})")
+    if sampling not in SAMPLINGS:
+        raise CalibrationError(f"sampling must be one of {SAMPLINGS}, got {sampling!r}")
     if robust not in ROBUST:
         raise CalibrationError(f"robust must be one of {ROBUST}, got {robust!r}")
     guess = {n: float(guess[n]) for n in names}
@@ -502,7 +510,7 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
     say(f"{len(candidates)} candidates x {len(pts)} parameter points")
     fingerprint = hashlib.sha256(json.dumps(
         [spec, guess, [[v.name, list(v.values)] for v in variables], pts, robust, duration, fps, pixel_size,
-         settings.to_dict(), DESIGN_NOISE, [_data_fingerprint(d) for d in with_data]],
+         settings.to_dict(), DESIGN_NOISE, sampling, [_data_fingerprint(d) for d in with_data]],
         sort_keys=True, default=str).encode()).hexdigest()[:16]
     done = _read_log(log, fingerprint) if (log is not None and resume) else {}
     if done:
@@ -537,16 +545,23 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
             continue
         template = max(members, key=lambda c: load_scene(c["scene"]).max_plate_speed())
         base = build_problem(_layout(template["scene"], template["recording"], settings, dtype), settings)
+        if sampling == "other":
+            other = dataclasses.replace(settings, seed=settings.seed + 1)
+            source = build_problem(_layout(template["scene"], template["recording"], other, dtype), other)
+        else:
+            source = base
         say(f"group {gi + 1}/{len(groups)}: {len(members)} candidate(s) on one compiled rollout (dx = {base.dx:.4g} m, "
             f"{int(np.sum(base.sim.state0.active))} particles, {len(base.frames)} frames)")
         for c in members:
             if "score" in c:
                 continue
             t0 = time.perf_counter()
-            pb_c = base.with_scene(load_scene(c["scene"], dtype=dtype))
+            scene_c = load_scene(c["scene"], dtype=dtype)
+            pb_c = base.with_scene(scene_c)
+            src_c = pb_c if source is base else source.with_scene(scene_c)
             per_point, share = [], None
             for k, (p, pf) in enumerate(zip(pts, full)):
-                data = _render(pb_c, pf, c["scene"], _ppc(settings, pb_c), [settings.seed, gi, candidates.index(c), k])
+                data = _render(src_c, pf, c["scene"], _ppc(settings, pb_c), [settings.seed, gi, candidates.index(c), k])
                 pb = pb_c.with_observations(data)
                 z = pb.transform.to_unconstrained({n: p[n] for n in pb.transform.names})
                 r, J = (np.asarray(a, np.float64) for a in pb.residual_and_jacobian(z))
@@ -574,7 +589,7 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
     with_hw = None if with_only is None else half_widths(with_only, guess)
     advice = _advice(candidates[0], names, with_hw, labels)
     out_settings = dict(settings.to_dict(), points=points, spread=spread, duration=duration, fps=fps,
-                        pixel_size=pixel_size, noise=DESIGN_NOISE, with_data=labels)
+                        pixel_size=pixel_size, noise=DESIGN_NOISE, sampling=sampling, with_data=labels)
     return DesignResult(guess=guess, points=pts, variables={v.name: list(v.values) for v in variables}, robust=robust,
                         candidates=candidates, with_only=with_only, advice=advice,
                         wall_time=time.perf_counter() - wall0, settings=out_settings)

@@ -272,3 +272,15 @@ def test_design_in_3d():
     assert all(0 < v < 1 for v in hw) and hw == sorted(hw)
     assert res.best["values"]["plate.motion.amplitude"] == 0.02
     assert "relative for sigma_y)" in res.report()
+
+
+@pytest.mark.slow
+def test_other_sampling_adds_the_misfit_of_another_discretization():
+    """sampling='other' renders the predicted recording from a second particle sampling: its residual at the
+    truth holds that misfit too, so the predicted interval is wider than with the fit's own particles."""
+    kw = dict(settings=ONE, points=1, duration=0.3)
+    same = design(PLATE, TRUTH, [Variable("duration", (0.3,))], **kw).best["half_width"]["sigma_y"]
+    other = design(PLATE, TRUTH, [Variable("duration", (0.3,))], sampling="other", **kw).best["half_width"]["sigma_y"]
+    assert other > 1.2 * same
+    with pytest.raises(CalibrationError, match="sampling"):
+        design(PLATE, TRUTH, ["duration=0.3,0.4"], sampling="mine")
