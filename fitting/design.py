@@ -34,8 +34,8 @@ from jaxfoam.guards import atomic_output
 
 from .io import Silhouettes, camera_covering, plate_footprint, read_silhouettes, validate
 from .joint import JointProblem, information_shares, joint_uncertainty, noise_scales
-from .problem import _data_fingerprint, build_problem
-from .settings import CalibrationError, FIT_CELLS, FIT_PPC, FitSettings, NUISANCE_FIELDS
+from .problem import _data_fingerprint, build_problem, fit_grid
+from .settings import CalibrationError, FitSettings, NUISANCE_FIELDS
 from .synth import boundary_pixels, hard_masks
 
 # What a calibrated foam is quoted to (relative for mu, sigma_y, eta; absolute for m, dimensionless):
@@ -324,9 +324,7 @@ def _layout(spec: dict, rec: dict, settings: FitSettings, dtype) -> Silhouettes:
     `build_problem` needs to bind the simulator before the candidate's own recording is rendered."""
     scene = load_scene(spec, dtype=dtype)
     d = scene.dim
-    extent = float(np.max(np.asarray(scene.domain_max) - np.asarray(scene.domain_min)))
-    dx = extent / FIT_CELLS[d] if settings.dx is None else float(settings.dx)
-    ppc = FIT_PPC[d] if settings.ppc is None else int(settings.ppc)
+    dx, ppc = fit_grid(scene, settings)
     pixel = dx / 2 if rec["pixel_size"] is None else float(rec["pixel_size"])
     camera, shape = camera_covering(scene, pixel)
     s0 = init_state(scene, dx, ppc, rho=scene.density, seed=settings.seed, dtype=dtype)
@@ -502,7 +500,7 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
         candidates.append(dict(values=values, scene=c_spec, recording=rec))
     labels = [f"recording {i}" if isinstance(d, Silhouettes) else str(d) for i, d in enumerate(with_data)]
     with_data = [d if isinstance(d, Silhouettes) else read_silhouettes(d) for d in with_data]
-    rho = [float(fixed.get("rho", load_scene(c_spec).density))] + [
+    rho = [float(fixed.get("rho", load_scene(spec).density))] + [
         float(fixed.get("rho", d.load_scene().density)) for d in with_data]
     if max(rho) - min(rho) > 1e-6 * max(rho):
         raise CalibrationError(f"density: the scene and the recordings give {rho} kg/m^3; one material has one "
@@ -528,7 +526,8 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
         say(f"{labels[i]}: residual and {len(pts)} Jacobians at dx = {pb.dx:.4g} m")
     with_only = None
     if made:
-        z0 = _joint_z(made[0][0], names, guess)
+        tr = made[0][0].transform
+        z0 = np.asarray(tr.to_unconstrained({n: guess[n] for n in tr.names}), np.float64)
         joint = JointProblem([pb for pb, _, _ in made], settings)
         parts = [(r0, jac[0]) for _, r0, jac in made]
         joint.set_scales(noise_scales(joint, parts))
@@ -561,7 +560,7 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
             src_c = pb_c if source is base else source.with_scene(scene_c)
             per_point, share = [], None
             for k, (p, pf) in enumerate(zip(pts, full)):
-                data = _render(src_c, pf, c["scene"], _ppc(settings, pb_c), [settings.seed, gi, candidates.index(c), k])
+                data = _render(src_c, pf, c["scene"], fit_grid(scene_c, settings)[1], [settings.seed, gi, candidates.index(c), k])
                 pb = pb_c.with_observations(data)
                 z = pb.transform.to_unconstrained({n: p[n] for n in pb.transform.names})
                 r, J = (np.asarray(a, np.float64) for a in pb.residual_and_jacobian(z))
@@ -623,10 +622,3 @@ def _write_log(path, fingerprint: str, done: dict) -> None:
                                         allow_nan=True))
 
 
-def _ppc(settings: FitSettings, problem) -> int:
-    return FIT_PPC[problem.scene.dim] if settings.ppc is None else int(settings.ppc)
-
-
-def _joint_z(pb, names, theta) -> np.ndarray:
-    tr = pb.transform
-    return np.asarray(tr.to_unconstrained({n: theta[n] for n in tr.names}), np.float64)

@@ -412,6 +412,14 @@ def check_fit_data(data: Silhouettes, scene: Scene, used) -> None:
                                "no boundary to fit (check the tracking threshold or the camera)")
 
 
+def fit_grid(scene: Scene, settings: FitSettings) -> tuple[float, int]:
+    """A fit's grid spacing (m) and particles per cell: the settings', or FIT_CELLS across the scene's
+    largest extent and FIT_PPC."""
+    extent = float(np.max(np.asarray(scene.domain_max) - np.asarray(scene.domain_min)))
+    dx = extent / FIT_CELLS[scene.dim] if settings.dx is None else float(settings.dx)
+    return dx, FIT_PPC[scene.dim] if settings.ppc is None else int(settings.ppc)
+
+
 def build_problem(data: Silhouettes, settings: FitSettings | None = None, *,
                   max_particles: int = DEFAULT_MAX_PARTICLES,
                   max_substeps: int = DEFAULT_MAX_SUBSTEPS, adjoint=DEFAULT_JACOBIAN) -> CalibrationProblem:
@@ -430,9 +438,7 @@ def build_problem(data: Silhouettes, settings: FitSettings | None = None, *,
     dtype = jnp.float64 if settings.dtype == "float64" else jnp.float32
     scene: Scene = data.load_scene(dtype=dtype)
     d = scene.dim
-    extent = float(np.max(np.asarray(scene.domain_max) - np.asarray(scene.domain_min)))
-    dx = extent / FIT_CELLS[d] if settings.dx is None else float(settings.dx)
-    ppc = FIT_PPC[d] if settings.ppc is None else int(settings.ppc)
+    dx, ppc = fit_grid(scene, settings)
     fixed = dict(settings.fixed)
     kappa = float(fixed.get("kappa", scene.kappa))
     rho = float(fixed.get("rho", scene.density))
