@@ -210,6 +210,51 @@ def uneven_frames_note(times, change, dx: float) -> str | None:
     return note + " (docs/calibrate.md)."
 
 
+# A piece of an observed silhouette counts when it holds at least this fraction of the frame's foam
+# pixels (and 4 pixels): tracking speckle and plate-edge slivers do not split the foam.
+PIECE_FRACTION = 0.02
+
+
+def count_pieces(mask) -> int:
+    """Number of 4-connected pieces of a boolean image (H, W) holding at least PIECE_FRACTION of its pixels."""
+    mask = np.asarray(mask, bool)
+    total = int(mask.sum())
+    if total == 0:
+        return 0
+    big = np.iinfo(np.int64).max
+    lab = np.where(mask, np.arange(mask.size, dtype=np.int64).reshape(mask.shape), big)
+    while True:  # each pass spreads the smallest label one pixel; a piece ends with one label
+        p = np.pad(lab, 1, constant_values=big)
+        nxt = np.minimum.reduce([lab, p[:-2, 1:-1], p[2:, 1:-1], p[1:-1, :-2], p[1:-1, 2:]])
+        nxt = np.where(mask, nxt, big)
+        if np.array_equal(nxt, lab):
+            break
+        lab = nxt
+    _, sizes = np.unique(lab[mask], return_counts=True)
+    return int(np.sum(sizes >= max(4, PIECE_FRACTION * total)))
+
+
+def separation_note(times, masks, weights) -> str | None:
+    """A note when the observed foam splits into more pieces than it starts with (a tear, a pinch-off),
+    naming the first such frame and the --time-window that ends before it; None when it never splits.
+
+    times (F,) s, masks and weights (F, H, W) of the frames fitted. A neck that thins to a few cells
+    separates when the grid decides, so the frames after it bias the parameters."""
+    obs = (np.asarray(masks, np.float64) >= 0.5) & (np.asarray(weights) > 0)
+    counts = [count_pieces(m) for m in obs]
+    if len(counts) < 2 or counts[0] == 0:
+        return None
+    split = next((k for k in range(1, len(counts)) if counts[k] > counts[0]), None)
+    if split is None:
+        return None
+    note = (f"The observed foam splits at t = {times[split]:.3g} s ({counts[0]} piece(s) before, {counts[split]} "
+            f"then). An MPM grid decides when a thinning neck separates, so the time of the split, and every frame "
+            f"after it, changes with dx")
+    if split >= 2:
+        note += f"; a fit of the frames before it (--time-window 0:{times[split - 1]:.4g}) is less biased by it"
+    return note + " (docs/calibrate.md)."
+
+
 def combine_intervals(unc: optim.Uncertainty, error_z, transform: optim.ParameterTransform) -> np.ndarray:
     """(p, 2) physical intervals whose half-width in fitted coordinates is the statistical half-width
     and the numerical error combined in quadrature."""

@@ -23,7 +23,7 @@ from .settings import (ADAM_DECAY, ADAM_LEARNING_RATE, BOUND_SPAN_FRACTION, Cali
 from .result import FitResult, _format_params
 from .problem import CalibrationProblem, _data_fingerprint, build_problem, fitted_occupancy
 from .check import (combine_intervals, discretization_error, fit_uncertainty, grid_limit_note, numerical_half_width,
-                    uneven_frames_note)
+                    separation_note, uneven_frames_note)
 
 
 def judge_reported_intervals(interval: dict, params: dict, transform, identifiable: dict):
@@ -284,6 +284,9 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
                 [float(data.times[i]) for i in problem.frames], change, problem.dx)
             if uneven:
                 notes.append(uneven)
+        split = separation_note([float(data.times[i]) for i in problem.frames], problem.masks, problem.weights)
+        if split:
+            notes.append(split)
         identifiable, more = judge_reported_intervals(interval, params, tr, identifiable)
         notes.extend(more)
         notes = tuple(notes)

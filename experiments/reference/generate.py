@@ -43,6 +43,7 @@ class Case:
     refine: float
     n_sets: int
     seed: int
+    path: str | None = None  # a scene JSON file instead of experiments/scenes/<scene>.json
 
 
 CASES = {c.scene: c for c in (
@@ -67,6 +68,18 @@ def parameter_sets(case):
     return out
 
 
+# One foam filmed in every 2D scene (the joint-fit and design evidence): its own Latin hypercube over RANGES.
+MATERIAL_SEED = 105
+N_MATERIALS = 3
+MATERIAL_SCENES = ("hanging_plate_2d", "drop_2d", "squeeze_2d")
+MATERIALS_DIR = DATA_DIR / "materials"
+
+
+def materials():
+    """The material sets shared by the scenes of MATERIAL_SCENES (mu Pa, sigma_y Pa, eta Pa s^m, m)."""
+    return parameter_sets(Case("materials", 0.0, 0, 1.0, N_MATERIALS, MATERIAL_SEED))
+
+
 def fit_dx(scene):
     """jaxfoam's default fit grid spacing for the scene, m."""
     return float(np.max(scene.hi - scene.lo)) / FIT_CELLS[scene.dim]
@@ -75,7 +88,7 @@ def fit_dx(scene):
 def setup_case(case, params, seed=0, refine=None):
     """The run of one case before its first step: (scene, Simulation, dx m, particle spacing m, grid shift
     (d,) cells). The seed fixes the grid offset and the sampling, so a case's run is the same each time."""
-    scene = RefScene(str(SCENES_DIR / f"{case.scene}.json"))
+    scene = RefScene(case.path or str(SCENES_DIR / f"{case.scene}.json"))
     d = scene.dim
     dx = fit_dx(scene) / (case.refine if refine is None else float(refine))
     rng = np.random.default_rng([case.seed, seed])
@@ -114,16 +127,22 @@ def simulate_case(case, params, seed=0, refine=None, progress=print):
     return masks, times, weights, camera, scene, source
 
 
-def generate(case_name, set_index, out_dir=DATA_DIR, refine=None, progress=print):
-    """Simulate one parameter set of one case, write data/<scene>_set<k>.h5 and check it with jaxfoam's reader."""
-    case = CASES[case_name]
-    params = parameter_sets(case)[set_index]
-    progress(f"{case_name} set {set_index}: {params}")
-    masks, times, weights, camera, scene, source = simulate_case(case, params, seed=set_index, refine=refine,
+def generate(case_name, set_index, out_dir=DATA_DIR, refine=None, progress=print, material=None, case=None,
+             name=None):
+    """Simulate one parameter set of one case, write data/<scene>_set<k>.h5 and check it with jaxfoam's reader.
+
+    material: index into `materials()`: that foam instead of the case's own set (file <scene>_mat<k>.h5).
+    case: a `Case` to run instead of CASES[case_name] (a scene file of its own); name: the file's stem."""
+    case = CASES[case_name] if case is None else case
+    params = parameter_sets(case)[set_index] if material is None else materials()[material]
+    tag = f"set{set_index}" if material is None else f"mat{material}"
+    progress(f"{case.scene} {tag}: {params}")
+    seed = set_index if material is None else MATERIAL_SEED + material
+    masks, times, weights, camera, scene, source = simulate_case(case, params, seed=seed, refine=refine,
                                                                  progress=progress)
     out_dir = pathlib.Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    path = out_dir / f"{case_name}_set{set_index}.h5"
+    path = out_dir / f"{name or f'{case.scene}_{tag}'}.h5"
     truth = dict(params, kappa=scene.kappa, rho=scene.density)
     write(path, masks, times, camera, scene.spec, weights, source, truth)
     read_back(path)
