@@ -1,0 +1,277 @@
+"""One foam in three recordings, on the reference simulator's data: single, joint and designed fits.
+
+For each shared material K of experiments/reference (`generate.materials()`; files
+experiments/reference/data/materials/<scene>_mat<K>.h5, made by the independent reference MPM at 4x
+finer dx than jaxfoam's fit default):
+  (i)   the hanging plate, drop and squeeze recordings, each fitted alone;
+  (ii)  the three fitted jointly (`fitting.joint.calibrate_joint`);
+  (iii) `jaxfoam design` of the hanging plate's motion (AMPLITUDES x FREQUENCIES, 1 s at 15 fps, the
+        reference camera's pixels) with the drop and squeeze as recordings already made, from the joint
+        fit (ii) as the guess (what a user has in hand), worst over 3 parameter points; the best-ranked
+        motion filmed by the reference simulator at material K; drop + squeeze + that recording fitted
+        jointly. The design is run once more at the truth, so predicted half-widths (at the guess, the
+        worst point, the truth) can be set against the achieved statistical ones.
+Every fit: dx FIT_DX, 2 starts of up to 15 LM iterations, the discretization check on (the reported
+intervals combine it with the statistical ones; both are recorded). Each step's record is kept in
+experiments/results/material_study/ and a rerun resumes after the last finished step.
+
+Usage: python -m experiments material_study [--material K ...] [--stop-after single|joint|design] [--report]
+Writes experiments/results/material_study.md. SI units.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+from experiments import _common as C  # noqa: E402
+from experiments.reference import generate as G  # noqa: E402
+from fitting import FitSettings, calibrate, read_silhouettes  # noqa: E402
+from fitting.design import TOLERANCE, Variable, design, half_widths  # noqa: E402
+from fitting.joint import calibrate_joint  # noqa: E402
+from jaxfoam.guards import atomic_output  # noqa: E402
+
+NAME = "material_study"
+RECORDS = C.RESULTS / NAME
+KINDS = ("hanging_plate_2d", "drop_2d", "squeeze_2d")
+NAMES = ("mu", "sigma_y", "eta", "m")
+FIT_DX = 0.01        # m: fits of three recordings and a 20-candidate design per material fit the session
+SETTINGS = FitSettings(dx=FIT_DX, starts=2, max_iter=15)
+AMPLITUDES = (0.005, 0.01, 0.02, 0.03)   # m
+FREQUENCIES = (1.0, 2.0, 3.0, 5.0, 8.0)  # Hz
+DESIGN_DURATION, DESIGN_FPS, DESIGN_POINTS = 1.0, 15.0, 3
+STEPS = ("single", "joint", "design", "designed_joint")
+
+
+def data_path(kind: str, k: int, designed: bool = False) -> Path:
+    return G.MATERIALS_DIR / f"{kind}_mat{k}{'_designed' if designed else ''}.h5"
+
+
+def record_path(k: int, step: str, kind: str | None = None) -> Path:
+    return RECORDS / f"mat{k}_{step}{'_' + kind if kind else ''}.json"
+
+
+def _save(path: Path, rec: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_output(path) as tmp:
+        Path(tmp).write_text(json.dumps(rec, indent=1, allow_nan=True, default=float))
+
+
+def _load(path: Path):
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def _fit_record(res, wall: float, files) -> dict:
+    return dict(files=[str(Path(f).name) for f in files], params=res.params, interval=dict(res.interval),
+                interval_statistical=dict(res.interval_statistical), identifiable=res.identifiable,
+                notes=list(res.notes), loss=res.loss, wall=wall, measured=C.machine_line(),
+                **({"information_share": res.information_share,
+                    "recordings": [{q: r[q] for q in ("name", "scale", "loss", "reproduced")} for r in res.recordings]}
+                   if hasattr(res, "information_share") else {}))
+
+
+def run_material(k: int, stop_after: str, say=print) -> None:
+    truth = G.materials()[k]
+    for kind in KINDS:
+        out = record_path(k, "single", kind)
+        if out.exists():
+            continue
+        t = time.perf_counter()
+        res = calibrate(read_silhouettes(data_path(kind, k)), SETTINGS)
+        _save(out, _fit_record(res, time.perf_counter() - t, [data_path(kind, k)]))
+        say(f"mat{k} {kind} alone: {_short(res.params)} in {time.perf_counter() - t:.0f} s")
+    if stop_after == "single":
+        return
+    out = record_path(k, "joint")
+    if not out.exists():
+        files = [data_path(kind, k) for kind in KINDS]
+        t = time.perf_counter()
+        res = calibrate_joint([read_silhouettes(f) for f in files], SETTINGS)
+        _save(out, _fit_record(res, time.perf_counter() - t, files))
+        say(f"mat{k} joint: {_short(res.params)} in {time.perf_counter() - t:.0f} s")
+    if stop_after == "joint":
+        return
+    out = record_path(k, "design")
+    scene_file = RECORDS / f"mat{k}_designed_scene.json"
+    if not out.exists():
+        guess = {n: _load(record_path(k, "joint"))["params"][n] for n in NAMES}
+        with_data = [read_silhouettes(data_path(kind, k)) for kind in KINDS[1:]]
+        plate = read_silhouettes(data_path(KINDS[0], k))
+        variables = [Variable("plate.motion.amplitude", AMPLITUDES), Variable("plate.motion.frequency", FREQUENCIES)]
+        kw = dict(settings=SETTINGS, duration=DESIGN_DURATION, fps=DESIGN_FPS, pixel_size=G.PIXEL_SIZE,
+                  with_data=with_data)
+        t = time.perf_counter()
+        res = design(plate.scene_json, guess, variables, points=DESIGN_POINTS, **kw)
+        wall = time.perf_counter() - t
+        best = res.best
+        at_truth = design(plate.scene_json, truth, [Variable(n, (v,)) for n, v in best["values"].items()],
+                          points=1, **kw).best
+        res.write_scene(scene_file)
+        _save(out, dict(guess=guess, wall=wall, candidates=len(res.candidates), values=best["values"],
+                        recording=best["recording"], predicted_guess=half_widths(best["predicted"][0], guess),
+                        predicted_worst=best["half_width"], predicted_truth=at_truth["half_width"],
+                        with_only=res.with_only, advice=res.advice,
+                        ranking=[dict(values=c["values"], half_width=c["half_width"], within=c["within"])
+                                 for c in res.candidates], measured=C.machine_line()))
+        say(f"mat{k} design: best {best['values']} of {len(res.candidates)} in {wall:.0f} s")
+    if stop_after == "design":
+        return
+    designed = data_path(KINDS[0], k, designed=True)
+    if not designed.exists():
+        rec = _load(out)["recording"]
+        case = G.Case(KINDS[0], float(rec["duration"]), int(rec["frames"]), 4.0, 1, 0, path=str(scene_file))
+        G.generate(KINDS[0], 0, G.MATERIALS_DIR, material=k, case=case, name=designed.stem,
+                   progress=lambda m: None)
+        (G.MATERIALS_DIR / "README.md").write_text(G.README_HEAD + G.index_table(G.MATERIALS_DIR))
+        say(f"mat{k}: made {designed.name}")
+    out = record_path(k, "designed_joint")
+    if not out.exists():
+        files = [designed] + [data_path(kind, k) for kind in KINDS[1:]]
+        t = time.perf_counter()
+        res = calibrate_joint([read_silhouettes(f) for f in files], SETTINGS)
+        _save(out, _fit_record(res, time.perf_counter() - t, files))
+        say(f"mat{k} designed joint: {_short(res.params)} in {time.perf_counter() - t:.0f} s")
+
+
+def _short(p: dict) -> dict:
+    return {n: round(float(p[n]), 4) for n in NAMES}
+
+
+def error(name: str, value: float, truth: float) -> float:
+    """Signed error: absolute for m, relative otherwise (the design's TOLERANCE convention)."""
+    return value - truth if name == "m" else value / truth - 1.0
+
+
+def within(name: str, value: float, truth: float) -> bool:
+    return abs(error(name, value, truth)) <= TOLERANCE[name]
+
+
+def half_width(name: str, interval, value: float) -> float:
+    lo, hi = interval
+    hw = 0.5 * (hi - lo)
+    return hw if name == "m" else hw / abs(value)
+
+
+def _fmt_err(n, e):
+    return f"{e:+.2f}" if n == "m" else f"{100 * e:+.0f}%"
+
+
+def _fmt_hw(n, v):
+    return "inf" if not math.isfinite(v) else (f"{v:.3g}" if n == "m" else f"{100 * v:.3g}%")
+
+
+def report(materials) -> Path:
+    """Rebuild material_study.md from the records (finished steps only)."""
+    body = [f"Fit settings: dx {FIT_DX} m, {SETTINGS.starts} starts of up to {SETTINGS.max_iter} LM iterations, "
+            f"the discretization check on. Tolerance (design's): {TOLERANCE} (relative; m absolute).\n"]
+    goals = {"joint2x": [], "designed": [], "pred": []}
+    for k in materials:
+        truth = G.materials()[k]
+        singles = {kind: _load(record_path(k, "single", kind)) for kind in KINDS}
+        joint, des, dj = (_load(record_path(k, s)) for s in ("joint", "design", "designed_joint"))
+        body.append(f"## Material {k}: mu {truth['mu']:g} Pa, sigma_y {truth['sigma_y']:g} Pa, "
+                    f"eta {truth['eta']:g} Pa s^m, m {truth['m']:g}\n")
+        cols = [(kind.replace('_2d', '') + " alone", singles[kind]) for kind in KINDS] + [
+            ("joint (h + d + s)", joint), ("designed joint", dj)]
+        cols = [(lab, r) for lab, r in cols if r is not None]
+        if not cols:
+            body.append("No step finished.\n")
+            continue
+        rows = []
+        for n in NAMES:
+            row = [n, f"{truth[n]:g}"]
+            for _, r in cols:
+                v, (lo, hi) = r["params"][n], r["interval"][n]
+                flag = ("" if lo <= truth[n] <= hi else " OUT") + (" ok" if within(n, v, truth[n]) else "")
+                row.append(f"{v:.4g} ({_fmt_err(n, error(n, v, truth[n]))}) [{lo:.3g}, {hi:.3g}]{flag}")
+            rows.append(row)
+        body.append("Value (error) [reported 95% interval]; OUT: truth outside it; ok: within tolerance.\n")
+        body.append(C.md_table(["param", "truth"] + [lab for lab, _ in cols], rows) + "\n")
+        rows = []
+        for n in NAMES:
+            row = [n]
+            for _, r in cols:
+                row.append(f"{_fmt_hw(n, half_width(n, r['interval'][n], r['params'][n]))} / "
+                           f"{_fmt_hw(n, half_width(n, r['interval_statistical'][n], r['params'][n]))}")
+            rows.append(row)
+        body.append("Half-widths, reported / statistical (relative; m absolute):\n")
+        body.append(C.md_table(["param"] + [lab for lab, _ in cols], rows) + "\n")
+        if joint and all(singles.values()):
+            ratios = {}
+            for n in ("sigma_y", "eta"):
+                for which in ("interval", "interval_statistical"):
+                    best = min(half_width(n, s[which][n], s["params"][n]) for s in singles.values())
+                    ratios[(n, which)] = best / half_width(n, joint[which][n], joint["params"][n])
+            goals["joint2x"].append((k, ratios))
+            body.append("Best single half-width over the joint one: " + "; ".join(
+                f"{n} {ratios[(n, 'interval')]:.2f} (statistical {ratios[(n, 'interval_statistical')]:.2f})"
+                for n in ("sigma_y", "eta")) + ". Joint information shares (h / d / s): " + "; ".join(
+                f"{n} " + " / ".join(f"{100 * v:.0f}%" for v in joint["information_share"][n]) for n in NAMES)
+                + ". Noise scales " + ", ".join(f"{r['scale']:.3g}" for r in joint["recordings"]) + ".\n")
+        if des:
+            body.append(f"Design from the joint fit's values: {des['candidates']} candidates in {des['wall']:.0f} s; "
+                        f"best {des['values']}. {des['advice']}\n")
+        if dj and des:
+            ok = all(within(n, dj["params"][n], truth[n]) and dj["interval"][n][0] <= truth[n] <= dj["interval"][n][1]
+                     for n in NAMES)
+            goals["designed"].append((k, ok))
+            rows = []
+            for n in NAMES:
+                ach = half_width(n, dj["interval_statistical"][n], dj["params"][n])
+                pt = des["predicted_truth"][n]
+                goals["pred"].append(ach / pt if pt > 0 and math.isfinite(pt) else math.inf)
+                rows.append([n, _fmt_hw(n, des["predicted_guess"][n]), _fmt_hw(n, des["predicted_worst"][n]),
+                             _fmt_hw(n, pt), _fmt_hw(n, ach), f"{ach / pt:.2f}" if pt > 0 else "-"])
+            body.append("Designed joint fit: predicted statistical half-widths against achieved:\n")
+            body.append(C.md_table(["param", "predicted (guess)", "predicted (worst point)", "predicted (truth)",
+                                    "achieved", "achieved / predicted (truth)"], rows) + "\n")
+        walls = [f"{lab} {r['wall'] / 60:.1f} min" for lab, r in cols]
+        body.append("Wall times: " + ", ".join(walls) + ".\n")
+    summary = ["## Goals (issue: joint fits and experiment design)\n"]
+    if goals["joint2x"]:
+        met = [k for k, r in goals["joint2x"] if r[("sigma_y", "interval")] >= 2 and r[("eta", "interval")] >= 2]
+        summary.append(f"- Joint fit of the three default recordings, sigma_y and eta reported intervals at least 2x "
+                       f"narrower than the best single recording's: {len(met)} of {len(goals['joint2x'])} materials "
+                       f"(goal: every material).")
+    if goals["designed"]:
+        summary.append(f"- Designed recordings, all four parameters within tolerance with the truth inside: "
+                       f"{sum(ok for _, ok in goals['designed'])} of {len(goals['designed'])} materials (goal: 2 of 3).")
+    if goals["pred"]:
+        inside = sum(0.5 <= r <= 2.0 for r in goals["pred"])
+        summary.append(f"- Achieved statistical half-widths within 2x of the predicted (at the truth): {inside} of "
+                       f"{len(goals['pred'])} parameter-cases.")
+    text = "\n".join(summary) + "\n\n" + "\n".join(body)
+    return C.write_md(NAME, False, "One foam in three recordings: single, joint and designed fits on reference data",
+                      text)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--material", type=int, action="append", help="material index (repeatable; default all)")
+    ap.add_argument("--stop-after", choices=STEPS, default=STEPS[-1])
+    ap.add_argument("--report", action="store_true", help="rebuild the page from the records, no fits")
+    args = ap.parse_args(argv)
+    mats = args.material if args.material is not None else list(range(G.N_MATERIALS))
+    for k in mats:
+        if not 0 <= k < G.N_MATERIALS:
+            ap.error(f"--material: {k} is not in [0, {G.N_MATERIALS - 1}]")
+    if not args.report:
+        for k in mats:
+            missing = [str(data_path(kind, k)) for kind in KINDS if not data_path(kind, k).exists()]
+            if missing:
+                ap.error(f"material {k}: missing {missing}; make them with "
+                         f"python -m experiments.reference generate --material {k}")
+            run_material(k, args.stop_after, say=lambda m: print(m, flush=True))
+    print(report(range(G.N_MATERIALS)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
