@@ -56,7 +56,7 @@ def main(argv=None):
                         ap.error(f"unknown case {name!r}; known: {sorted(G.CASES)}")
                     for k in args.material:
                         G.generate(name, 0, out, refine=args.refine, material=k)
-            (out / "README.md").write_text(G.README_HEAD + G.index_table(out))
+            (out / "README.md").write_text(G.MATERIALS_README_HEAD + G.index_table(out))
             return 0
         out = pathlib.Path(args.out) if args.out else G.DATA_DIR
         for name in args.case or list(G.CASES):

@@ -175,3 +175,15 @@ Each file's /source attribute (JSON) holds its dx, particles, sampling, grid off
 Wall times: one shared core of a 2-core machine, numba-compiled kernels.
 
 """
+
+MATERIALS_README_HEAD = """# Reference silhouette data: one foam in several scenes
+
+Made by `python -m experiments.reference generate --material K` (experiments/reference/generate.py): the
+three foams of `materials()` (seed 105), each filmed by the independent reference MPM in the hanging plate,
+drop and squeeze (2D, 4x finer dx than jaxfoam's fit default), the files `<scene>_mat<K>.h5`.
+`hanging_plate_2d_mat<K>_designed.h5`: the plate motion `jaxfoam design` recommends for material K
+(experiments/material_study.py; the motion is in the file's scene notes). Clean masks at 2.5 mm pixels,
+plate pixels of weight 0, truth in /truth, dx, sampling, steps and wall time in /source.
+Wall times: one shared core of a 2-core machine, numba-compiled kernels.
+
+"""

@@ -1,6 +1,7 @@
 """The material study's page judges the issue's goals from its records: the joint interval's narrowing
 is the best single half-width over the joint one (relative, per parameter), a designed fit counts only
 with every parameter within tolerance and its truth inside, and predicted against achieved is a ratio."""
+import math
 import sys
 from pathlib import Path
 
@@ -13,10 +14,10 @@ from experiments.reference import generate as G  # noqa: E402
 
 
 def _fit(truth, scale, shift=1.0, stat=None):
-    """A record whose value is truth*shift (m + shift - 1) and whose half-widths are `scale` (relative)."""
+    """A record whose value is truth*shift (m + shift - 1), its intervals value */ exp(scale) (m +- scale)."""
     params = {n: (truth[n] + shift - 1.0 if n == "m" else truth[n] * shift) for n in S.NAMES}
     def iv(s):
-        return {n: [params[n] - s * (1 if n == "m" else params[n]), params[n] + s * (1 if n == "m" else params[n])]
+        return {n: ([params[n] - s, params[n] + s] if n == "m" else [params[n] / math.exp(s), params[n] * math.exp(s)])
                 for n in S.NAMES}
     return dict(params=params, interval=iv(scale), interval_statistical=iv(stat or scale / 2), wall=60.0,
                 information_share={n: [0.5, 0.3, 0.2] for n in S.NAMES},
@@ -29,7 +30,7 @@ def test_report_judges_the_goals_from_the_records(tmp_path, monkeypatch):
     truth = G.materials()[0]
     for kind, hw in zip(S.KINDS, (0.9, 0.6, 1.2)):
         S._save(S.record_path(0, "single", kind), _fit(truth, hw))
-    S._save(S.record_path(0, "joint"), _fit(truth, 0.25))       # best single 0.6 / 0.25 = 2.4x
+    S._save(S.record_path(0, "joint"), _fit(truth, 0.25))       # log widths: best single 0.6 / 0.25 = 2.4x
     S._save(S.record_path(0, "designed_joint"), _fit(truth, 0.2, shift=1.05, stat=0.04))
     S._save(S.record_path(0, "design"), dict(candidates=20, wall=100.0, values={"plate.motion.amplitude": 0.02},
                                              advice="Film 1 s.", predicted_guess={n: 0.05 for n in S.NAMES},
@@ -40,7 +41,7 @@ def test_report_judges_the_goals_from_the_records(tmp_path, monkeypatch):
     assert "sigma_y 2.40 (statistical 2.40); eta 2.40" in page
     # +5% on mu, sigma_y (tolerance 10%), eta (25%) and +0.05 on m (0.1): within, truth inside
     assert "all four parameters within tolerance with the truth inside: 1 of 1" in page
-    # achieved statistical 0.04 against 0.1 predicted at the truth: 0.4, outside [0.5, 2]
+    # achieved statistical half-width sinh(0.04) against 0.1 predicted at the truth: 0.4, outside [0.5, 2]
     assert "within 2x of the predicted (at the truth): 0 of 4" in page
     S._save(S.record_path(0, "designed_joint"), _fit(truth, 0.2, shift=1.15, stat=0.1))
     page = S.report([0]).read_text()
@@ -51,4 +52,15 @@ def test_half_width_and_error_follow_the_design_tolerance_convention():
     assert S.half_width("mu", (90.0, 130.0), 100.0) == pytest.approx(0.2)
     assert S.half_width("m", (0.4, 0.6), 0.5) == pytest.approx(0.1)
     assert S.within("eta", 1.24, 1.0) and not S.within("sigma_y", 1.11, 1.0)
+    assert S.log_width("eta", (0.5, 2.0)) == pytest.approx(math.log(4.0)) and S.log_width("m", (0.2, 0.5)) == pytest.approx(0.3)
     assert S.error("m", 0.7, 0.6) == pytest.approx(0.1)
+
+
+def test_a_fit_on_a_bound_becomes_a_guess_inside_it():
+    """The design refuses a guess on a bound (its transform is open there): the study moves such a value
+    GUESS_MARGIN of the span inside (log span for positive parameters) and leaves interior values alone."""
+    lo, hi = S.SETTINGS.bounds_of("m")
+    g = S.inside_bounds({"mu": 210.0, "sigma_y": 43.7, "eta": 15.2, "m": lo})
+    assert g["m"] == pytest.approx(lo + S.GUESS_MARGIN * (hi - lo)) and g["mu"] == 210.0 and g["eta"] == 15.2
+    mlo, mhi = S.SETTINGS.bounds_of("mu")
+    assert S.inside_bounds({"mu": mhi})["mu"] == pytest.approx(mhi * (mlo / mhi) ** S.GUESS_MARGIN)
