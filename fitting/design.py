@@ -263,7 +263,8 @@ def _structure(spec: dict, rec: dict) -> str:
 def parameter_points(guess: dict, names, count: int = DEFAULT_POINTS, spread: float = DEFAULT_SPREAD,
                      bounds: dict | None = None) -> list[dict]:
     """The guess and count - 1 points around it (positive parameters times spread^(+-1), m +- M_SPREAD,
-    `_POINT_SIGNS`), each kept inside `bounds`."""
+    `_POINT_SIGNS`), each kept strictly inside `bounds` (one past a bound lies halfway between the guess
+    and it: geometrically for positive parameters)."""
     if not 1 <= count <= len(_POINT_SIGNS) + 1:
         raise CalibrationError(f"points must be in [1, {len(_POINT_SIGNS) + 1}], got {count}")
     if not spread > 1.0:
@@ -275,9 +276,13 @@ def parameter_points(guess: dict, names, count: int = DEFAULT_POINTS, spread: fl
             if n not in names:
                 continue
             v = guess[n] + sgn * M_SPREAD if n in ABSOLUTE else guess[n] * spread ** sgn
-            if bounds and n in bounds:
+            if bounds and n in bounds:  # a point past a bound goes halfway to it: the transforms are open there
                 lo, hi = bounds[n]
-                v = min(max(v, lo), hi)
+                g = guess[n]
+                if not v < hi:
+                    v = 0.5 * (g + hi) if n in ABSOLUTE or not math.isfinite(hi) else math.sqrt(g * hi)
+                elif not v > lo:
+                    v = 0.5 * (g + lo) if n in ABSOLUTE or lo <= 0 else math.sqrt(g * lo)
             p[n] = float(v)
         out.append(p)
     return out

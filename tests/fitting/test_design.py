@@ -20,6 +20,7 @@ from fitting.design import (DEFAULT_SPREAD, M_SPREAD, SWEEP_SAMPLES_PER_PERIOD, 
                             _layout, _render, _structure, candidate_scene, design, half_widths, parameter_points,
                             parse_vary)
 from fitting.driver import calibrate
+from fitting.problem import fit_transform
 from helpers import scene as zoo_scene
 from jaxfoam import load_scene
 from jaxfoam.cli import main
@@ -108,11 +109,20 @@ def test_structure_groups_candidates_by_compiled_shape():
 
 
 def test_parameter_points_spread_and_bounds():
-    """The guess first, then positive parameters times spread^(+-1) and m +- M_SPREAD, clipped to the bounds."""
+    """The guess first, then positive parameters times spread^(+-1) and m +- M_SPREAD; a point past a bound
+    lies halfway between the guess and it (the fit's transforms are open at the bounds), so a guess next
+    to a bound (a fit that ended there) still gives points the transform accepts."""
     pts = parameter_points(TRUTH, ("mu", "sigma_y", "eta", "m"), 3, bounds={"m": (0.2, 0.7)})
     assert pts[0] == TRUTH
     assert pts[1]["mu"] == pytest.approx(150 * DEFAULT_SPREAD) and pts[1]["sigma_y"] == pytest.approx(25 / DEFAULT_SPREAD)
-    assert pts[1]["m"] == pytest.approx(0.6 - M_SPREAD) and pts[2]["m"] == 0.7  # clipped at the bound
+    assert pts[1]["m"] == pytest.approx(0.6 - M_SPREAD) and pts[2]["m"] == pytest.approx(0.65)  # halfway to 0.7
+    near = dict(TRUTH, m=0.226, eta=480.0)
+    pts = parameter_points(near, ("mu", "sigma_y", "eta", "m"), 3, bounds={"m": (0.2, 1.5), "eta": (0.05, 500.0)})
+    ms, etas = sorted(p["m"] for p in pts), sorted(p["eta"] for p in pts)
+    assert ms[0] == pytest.approx(0.213) and 0.2 < ms[0] < ms[1]
+    assert etas[-1] == pytest.approx(math.sqrt(480.0 * 500.0)) and etas[-1] < 500.0
+    tr = fit_transform(FitSettings())
+    assert all(np.all(np.isfinite(tr.to_unconstrained(p))) for p in pts)
     assert parameter_points(TRUTH, ("sigma_y",), 2)[1]["mu"] == 150.0  # a parameter not predicted stays
     with pytest.raises(CalibrationError, match="points"):
         parameter_points(TRUTH, ("mu",), 0)
