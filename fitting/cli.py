@@ -417,7 +417,7 @@ def add_design_parser(subparsers) -> argparse.ArgumentParser:
     """Add the `design` subcommand to an argparse subparsers object (runs via args.func(args))."""
     from jaxfoam.cli import float_in, int_at_least, positive_float
     from .design import (DEFAULT_DURATION, DEFAULT_FPS, DEFAULT_LEVELS, DEFAULT_POINTS, DEFAULT_SPREAD,
-                         DERIVED_VARIABLES, RECORDING_VARIABLES, ROBUST, SAMPLINGS)
+                         DERIVED_VARIABLES, RECORDING_VARIABLES, MISFITS, ROBUST, SAMPLINGS)
 
     named = "; ".join([f"{k} ({u})" for k, u in RECORDING_VARIABLES.items()]
                       + [f"{k} ({u.split(',')[0]})" for k, u in DERIVED_VARIABLES.items()])
@@ -445,6 +445,9 @@ def add_design_parser(subparsers) -> argparse.ArgumentParser:
     ap.add_argument("--sampling", choices=SAMPLINGS, default="same",
                     help="render the predicted recording from the fit's own particle sampling or from another "
                          "(default same)")
+    ap.add_argument("--misfit", choices=MISFITS, default="render",
+                    help="the predicted recording's misfit: the renderer's noise, or at least that of the --with "
+                         "recordings at the guess (model error like theirs) (default render)")
     ap.add_argument("--duration", type=positive_float, default=DEFAULT_DURATION,
                     help=f"recorded time, s, unless varied (default {DEFAULT_DURATION:g})")
     ap.add_argument("--fps", type=positive_float, default=DEFAULT_FPS,
@@ -493,7 +496,8 @@ def run_design(args) -> int:
             result = design(args.scene, guess, variables, with_data=args.with_data, settings=settings,
                             points=args.points, spread=args.spread, robust=args.robust, duration=args.duration,
                             fps=args.fps, pixel_size=args.pixel_size, progress=lambda m: print(m, flush=True),
-                            log=log, resume=args.resume, sampling=args.sampling)
+                            log=log, resume=args.resume, sampling=args.sampling,
+                            misfit=args.misfit)
     except KeyboardInterrupt as exc:
         sys.stderr.write(f"\njaxfoam design: {'terminated' if isinstance(exc, _Terminated) else 'interrupted'}; "
                          f"the design log {log} keeps every finished candidate: run the same command with "

@@ -54,6 +54,9 @@ ROBUST = ("worst", "mean")
 # Whose particles make the predicted recording: the fit's own ("same": the noise is the renderer's and the
 # boundary flips'), or a second sampling ("other": the misfit of another discretization of the material too).
 SAMPLINGS = ("same", "other")
+# How large the predicted recording's misfit is: the renderer's noise alone ("render"), or at least the
+# median misfit per residual of the recordings already made at the guess ("with": a model error like theirs).
+MISFITS = ("render", "with")
 # Boundary-pixel flip probability of the predicted recordings: synth's default, about the tracking
 # error measured on rendered videos (docs/data.md).
 DESIGN_NOISE = 0.05
@@ -288,6 +291,11 @@ def parameter_points(guess: dict, names, count: int = DEFAULT_POINTS, spread: fl
     return out
 
 
+def _rms(r, n_eff: float) -> float:
+    """A residual's RMS per effective independent residual."""
+    return math.sqrt(float(np.dot(r, r)) / max(float(n_eff), 1.0))
+
+
 def half_widths(interval: dict, theta: dict) -> dict:
     """Half-widths of intervals: relative to the value for mu, sigma_y, eta; absolute for m."""
     out = {}
@@ -443,7 +451,7 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
            points: int = DEFAULT_POINTS, spread: float = DEFAULT_SPREAD, robust: str = "worst",
            duration: float = DEFAULT_DURATION, fps: float = DEFAULT_FPS, pixel_size: float | None = None,
            progress: Callable[[str], None] | None = None, log=None, resume: bool = False,
-           sampling: str = "same") -> DesignResult:
+           sampling: str = "same", misfit: str = "render") -> DesignResult:
     """Rank the candidate recordings of `scene` by their predicted 95% intervals (module docs).
 
     Args:
@@ -457,6 +465,8 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
       progress: optional callable(str) for status lines.
       sampling: "same" or "other" (`SAMPLINGS`): the predicted recording is rendered from the fit's own
         particle sampling, or from a second one (seed + 1).
+      misfit: "render" or "with" (`MISFITS`): the predicted recording's residual as rendered, or raised to
+        the median RMS per effective residual of the `with_data` recordings at the guess (needs with_data).
       log: a JSON file that receives each candidate's prediction as it finishes (written atomically);
         resume: take the candidates found there instead of evaluating them again (the log must be of the
         same design: CalibrationError otherwise).
@@ -481,6 +491,10 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
         raise CalibrationError(f"sampling must be one of {SAMPLINGS}, got {sampling!r}")
     if robust not in ROBUST:
         raise CalibrationError(f"robust must be one of {ROBUST}, got {robust!r}")
+    if misfit not in MISFITS:
+        raise CalibrationError(f"misfit must be one of {MISFITS}, got {misfit!r}")
+    if misfit == "with" and not with_data:
+        raise CalibrationError("misfit 'with' takes the misfit of the recordings already made: give them (--with)")
     guess = {n: float(guess[n]) for n in names}
     spec = json.loads(Path(scene).read_text()) if not isinstance(scene, dict) else copy.deepcopy(scene)
     variables = [v if isinstance(v, Variable) else parse_vary(v) for v in variables]
@@ -513,7 +527,7 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
     say(f"{len(candidates)} candidates x {len(pts)} parameter points")
     fingerprint = hashlib.sha256(json.dumps(
         [spec, guess, [[v.name, list(v.values)] for v in variables], pts, robust, duration, fps, pixel_size,
-         settings.to_dict(), DESIGN_NOISE, sampling, [_data_fingerprint(d) for d in with_data]],
+         settings.to_dict(), DESIGN_NOISE, sampling, misfit, [_data_fingerprint(d) for d in with_data]],
         sort_keys=True, default=str).encode()).hexdigest()[:16]
     done = _read_log(log, fingerprint) if (log is not None and resume) else {}
     if done:
@@ -538,6 +552,7 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
         joint.set_scales(noise_scales(joint, parts))
         unc = joint_uncertainty(joint, parts, z0, settings.level)
         with_only = {n: [float(v) for v in unc.interval[k]] for k, n in enumerate(joint.names)}
+        made_rms = float(np.median([_rms(r0, joint.n_effective(i, r0)) for i, (r0, _) in enumerate(parts)]))
 
     groups: dict[str, list] = {}
     for c in candidates:
@@ -570,6 +585,9 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
                 z = pb.transform.to_unconstrained({n: p[n] for n in pb.transform.names})
                 r, J = (np.asarray(a, np.float64) for a in pb.residual_and_jacobian(z))
                 joint = JointProblem([pb] + [m[0] for m in made], settings)
+                if misfit == "with":
+                    own = _rms(r, joint.n_effective(0, r))
+                    r = r * (made_rms / own) if 0.0 < own < made_rms else r
                 parts = [(r, J)] + [(r0, jac[k]) for _, r0, jac in made]
                 joint.set_scales(noise_scales(joint, parts))
                 unc = joint_uncertainty(joint, parts, np.asarray(z, np.float64), settings.level)
@@ -593,7 +611,7 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
     with_hw = None if with_only is None else half_widths(with_only, guess)
     advice = _advice(candidates[0], names, with_hw, labels)
     out_settings = dict(settings.to_dict(), points=points, spread=spread, duration=duration, fps=fps,
-                        pixel_size=pixel_size, noise=DESIGN_NOISE, sampling=sampling, with_data=labels)
+                        pixel_size=pixel_size, noise=DESIGN_NOISE, sampling=sampling, misfit=misfit, with_data=labels)
     return DesignResult(guess=guess, points=pts, variables={v.name: list(v.values) for v in variables}, robust=robust,
                         candidates=candidates, with_only=with_only, advice=advice,
                         wall_time=time.perf_counter() - wall0, settings=out_settings)

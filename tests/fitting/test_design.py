@@ -150,6 +150,10 @@ def test_bad_input_is_refused_before_any_simulation():
         design(PLATE, TRUTH, ["plate.center.1=0.30,0.5"])  # the plate leaves the domain
     with pytest.raises(CalibrationError, match="nuisance"):
         design(zoo_scene("drop"), TRUTH, ["shape.height=0.1,0.2"], settings=FitSettings(fit_also=("friction",)))
+    with pytest.raises(CalibrationError, match="misfit must be one of"):
+        design(PLATE, TRUTH, ["duration=0.3,0.4"], misfit="model")
+    with pytest.raises(CalibrationError, match="misfit 'with' takes the misfit of the recordings already made"):
+        design(PLATE, TRUTH, ["duration=0.3,0.4"], misfit="with")
 
 
 # ---------------------------------------------------------------------------------------------- predictions
@@ -294,3 +298,24 @@ def test_other_sampling_adds_the_misfit_of_another_discretization():
     assert other > 1.2 * same
     with pytest.raises(CalibrationError, match="sampling"):
         design(PLATE, TRUTH, ["duration=0.3,0.4"], sampling="mine")
+
+
+@pytest.mark.slow
+def test_misfit_with_takes_the_made_recordings_misfit(one_candidate, tmp_path):
+    """misfit='with' raises the predicted recording's residual to the made recordings' median RMS per
+    effective residual: with a copy of its own recording nothing changes; with a recording the guess
+    misfits (made at sigma_y 40 Pa, predicted at 25) the predicted interval widens."""
+    res, data, path = one_candidate
+    kw = dict(settings=ONE, points=1)
+    one = [Variable("duration", (0.3,))]
+    same = design(PLATE, TRUTH, one, with_data=[path], **kw).best["half_width"]["sigma_y"]
+    same_with = design(PLATE, TRUTH, one, with_data=[path], misfit="with", **kw).best["half_width"]["sigma_y"]
+    assert same_with == pytest.approx(same, rel=1e-9)
+    spec, rec = candidate_scene(PLATE, {"duration": 0.3})
+    base = build_problem(_layout(spec, rec, ONE, jnp.float64), ONE)
+    off = _render(base.with_scene(load_scene(spec)), dict(TRUTH, sigma_y=40.0), spec, 4, [ONE.seed, 0, 0, 0])
+    off_path = tmp_path / "off.h5"
+    off.write(off_path)
+    render = design(PLATE, TRUTH, one, with_data=[off_path], **kw).best["half_width"]["sigma_y"]
+    with_ = design(PLATE, TRUTH, one, with_data=[off_path], misfit="with", **kw).best["half_width"]["sigma_y"]
+    assert with_ > 1.5 * render
