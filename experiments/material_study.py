@@ -8,20 +8,23 @@ finer dx than jaxfoam's fit default):
   (iii) `jaxfoam design` of the hanging plate's motion (AMPLITUDES x FREQUENCIES, 1 s at 15 fps, the
         reference camera's pixels) with the drop and squeeze as recordings already made, from the joint
         fit (ii) as the guess (what a user has in hand; a value on a bound moved 2% of the span inside),
-        worst over 3 parameter points; the best-ranked
+        worst over 3 parameter points, ranked on the renderer's misfit (--misfit render); the best-ranked
         motion filmed by the reference simulator at material K; drop + squeeze + that recording fitted
-        jointly. The design is run once more at the truth, so predicted half-widths (at the guess, the
-        worst point, the truth) can be set against the achieved statistical ones.
+        jointly. The best candidate is predicted once more at the truth, and once with the made
+        recordings' misfit (--misfit with), so predicted half-widths can be set against the achieved
+        statistical ones.
 Every fit: dx FIT_DX, 2 starts of up to 15 LM iterations, the discretization check on (the reported
 intervals combine it with the statistical ones; both are recorded). Each step's record is kept in
 experiments/results/material_study/ and a rerun resumes after the last finished step.
 
-Usage: python -m experiments material_study [--material K ...] [--stop-after single|joint|design] [--report]
-Writes experiments/results/material_study.md. SI units.
+Usage: python -m experiments material_study [--material K ...] [--stop-after STEP] [--grid 1cm|default] [--report]
+Writes experiments/results/material_study.md (--grid default: material_study_default.md, the fitter's
+default grid, records *_default). SI units.
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -45,18 +48,31 @@ KINDS = ("hanging_plate_2d", "drop_2d", "squeeze_2d")
 NAMES = ("mu", "sigma_y", "eta", "m")
 FIT_DX = 0.01        # m: fits of three recordings and a 20-candidate design per material fit the session
 SETTINGS = FitSettings(dx=FIT_DX, starts=2, max_iter=15)
+
+
+@dataclasses.dataclass(frozen=True)
+class Grid:
+    """A fit grid of the study: its records' suffix, the fits' settings and the page's name."""
+
+    tag: str
+    settings: FitSettings
+    page: str
+
+
+GRIDS = {"1cm": Grid("", SETTINGS, NAME),
+         "default": Grid("_default", dataclasses.replace(SETTINGS, dx=None), NAME + "_default")}
 AMPLITUDES = (0.005, 0.01, 0.02, 0.03)   # m
 FREQUENCIES = (1.0, 2.0, 3.0, 5.0, 8.0)  # Hz
 DESIGN_DURATION, DESIGN_FPS, DESIGN_POINTS = 1.0, 15.0, 3
 STEPS = ("single", "joint", "design", "designed_joint")  # design includes design_misfit
 
 
-def data_path(kind: str, k: int, designed: bool = False) -> Path:
-    return G.MATERIALS_DIR / f"{kind}_mat{k}{'_designed' if designed else ''}.h5"
+def data_path(kind: str, k: int, designed: bool = False, tag: str = "") -> Path:
+    return G.MATERIALS_DIR / f"{kind}_mat{k}{'_designed' + tag if designed else ''}.h5"
 
 
-def record_path(k: int, step: str, kind: str | None = None) -> Path:
-    return RECORDS / f"mat{k}_{step}{'_' + kind if kind else ''}.json"
+def record_path(k: int, step: str, kind: str | None = None, grid: Grid = GRIDS["1cm"]) -> Path:
+    return RECORDS / f"mat{k}_{step}{'_' + kind if kind else ''}{grid.tag}.json"
 
 
 def _save(path: Path, rec: dict) -> None:
@@ -78,36 +94,36 @@ def _fit_record(res, wall: float, files) -> dict:
                    if hasattr(res, "information_share") else {}))
 
 
-def run_material(k: int, stop_after: str, say=print) -> None:
+def run_material(k: int, stop_after: str, grid: Grid = GRIDS["1cm"], say=print) -> None:
     truth = G.materials()[k]
     for kind in KINDS:
-        out = record_path(k, "single", kind)
+        out = record_path(k, "single", kind, grid=grid)
         if out.exists():
             continue
         t = time.perf_counter()
-        res = calibrate(read_silhouettes(data_path(kind, k)), SETTINGS)
+        res = calibrate(read_silhouettes(data_path(kind, k)), grid.settings)
         _save(out, _fit_record(res, time.perf_counter() - t, [data_path(kind, k)]))
         say(f"mat{k} {kind} alone: {_short(res.params)} in {time.perf_counter() - t:.0f} s")
     if stop_after == "single":
         return
-    out = record_path(k, "joint")
+    out = record_path(k, "joint", grid=grid)
     if not out.exists():
         files = [data_path(kind, k) for kind in KINDS]
         t = time.perf_counter()
-        res = calibrate_joint([read_silhouettes(f) for f in files], SETTINGS)
+        res = calibrate_joint([read_silhouettes(f) for f in files], grid.settings)
         _save(out, _fit_record(res, time.perf_counter() - t, files))
         say(f"mat{k} joint: {_short(res.params)} in {time.perf_counter() - t:.0f} s")
     if stop_after == "joint":
         return
-    out = record_path(k, "design")
-    scene_file = RECORDS / f"mat{k}_designed_scene.json"
+    out = record_path(k, "design", grid=grid)
+    scene_file = RECORDS / f"mat{k}_designed_scene{grid.tag}.json"
     if not out.exists():
-        guess = inside_bounds({n: _load(record_path(k, "joint"))["params"][n] for n in NAMES})
+        guess = inside_bounds({n: _load(record_path(k, "joint", grid=grid))["params"][n] for n in NAMES})
         with_data = [read_silhouettes(data_path(kind, k)) for kind in KINDS[1:]]
         plate = read_silhouettes(data_path(KINDS[0], k))
         variables = [Variable("plate.motion.amplitude", AMPLITUDES), Variable("plate.motion.frequency", FREQUENCIES)]
-        kw = dict(settings=SETTINGS, duration=DESIGN_DURATION, fps=DESIGN_FPS, pixel_size=G.PIXEL_SIZE,
-                  with_data=with_data)
+        kw = dict(settings=grid.settings, duration=DESIGN_DURATION, fps=DESIGN_FPS, pixel_size=G.PIXEL_SIZE,
+                  with_data=with_data, misfit="render")
         t = time.perf_counter()
         scene = json.loads(plate.scene_json) if isinstance(plate.scene_json, str) else plate.scene_json
         res = design(scene, guess, variables, points=DESIGN_POINTS, **kw)
@@ -123,12 +139,12 @@ def run_material(k: int, stop_after: str, say=print) -> None:
                         ranking=[dict(values=c["values"], half_width=c["half_width"], within=c["within"])
                                  for c in res.candidates], measured=C.machine_line()))
         say(f"mat{k} design: best {best['values']} of {len(res.candidates)} in {wall:.0f} s")
-    out_m = record_path(k, "design_misfit")
+    out_m = record_path(k, "design_misfit", grid=grid)
     if not out_m.exists():  # the best candidate predicted once more with the made recordings' misfit
         rec = _load(out)
         plate = read_silhouettes(data_path(KINDS[0], k))
         scene = json.loads(plate.scene_json) if isinstance(plate.scene_json, str) else plate.scene_json
-        kw = dict(settings=SETTINGS, duration=DESIGN_DURATION, fps=DESIGN_FPS, pixel_size=G.PIXEL_SIZE,
+        kw = dict(settings=grid.settings, duration=DESIGN_DURATION, fps=DESIGN_FPS, pixel_size=G.PIXEL_SIZE,
                   with_data=[read_silhouettes(data_path(kind, k)) for kind in KINDS[1:]], misfit="with")
         one = [Variable(n, (v,)) for n, v in rec["values"].items()]
         t = time.perf_counter()
@@ -138,7 +154,7 @@ def run_material(k: int, stop_after: str, say=print) -> None:
         say(f"mat{k} design with the made recordings' misfit: {_short(best['half_width'])}")
     if stop_after == "design":
         return
-    designed = data_path(KINDS[0], k, designed=True)
+    designed = data_path(KINDS[0], k, designed=True, tag=grid.tag)
     if not designed.exists():
         rec = _load(out)["recording"]
         case = G.Case(KINDS[0], float(rec["duration"]), int(rec["frames"]), 4.0, 1, 0, path=str(scene_file))
@@ -146,11 +162,11 @@ def run_material(k: int, stop_after: str, say=print) -> None:
                    progress=lambda m: None)
         (G.MATERIALS_DIR / "README.md").write_text(G.MATERIALS_README_HEAD + G.index_table(G.MATERIALS_DIR))
         say(f"mat{k}: made {designed.name}")
-    out = record_path(k, "designed_joint")
+    out = record_path(k, "designed_joint", grid=grid)
     if not out.exists():
         files = [designed] + [data_path(kind, k) for kind in KINDS[1:]]
         t = time.perf_counter()
-        res = calibrate_joint([read_silhouettes(f) for f in files], SETTINGS)
+        res = calibrate_joint([read_silhouettes(f) for f in files], grid.settings)
         _save(out, _fit_record(res, time.perf_counter() - t, files))
         say(f"mat{k} designed joint: {_short(res.params)} in {time.perf_counter() - t:.0f} s")
 
@@ -205,15 +221,17 @@ def _fmt_hw(n, v):
     return "inf" if not math.isfinite(v) else (f"{v:.3g}" if n == "m" else f"{100 * v:.3g}%")
 
 
-def report(materials) -> Path:
+def report(materials, grid: Grid = GRIDS["1cm"]) -> Path:
     """Rebuild material_study.md from the records (finished steps only)."""
-    body = [f"Fit settings: dx {FIT_DX} m, {SETTINGS.starts} starts of up to {SETTINGS.max_iter} LM iterations, "
+    st = grid.settings
+    body = [f"Fit settings: dx {f'{st.dx} m' if st.dx else 'the fitter default (64 cells across the domain)'}, "
+            f"{st.starts} starts of up to {st.max_iter} LM iterations, "
             f"the discretization check on. Tolerance (design's): {TOLERANCE} (relative; m absolute).\n"]
     goals = {"joint2x": [], "designed": [], "pred": [], "pred_misfit": []}
     for k in materials:
         truth = G.materials()[k]
-        singles = {kind: _load(record_path(k, "single", kind)) for kind in KINDS}
-        joint, des, dj = (_load(record_path(k, s)) for s in ("joint", "design", "designed_joint"))
+        singles = {kind: _load(record_path(k, "single", kind, grid=grid)) for kind in KINDS}
+        joint, des, dj = (_load(record_path(k, s, grid=grid)) for s in ("joint", "design", "designed_joint"))
         body.append(f"## Material {k}: mu {truth['mu']:g} Pa, sigma_y {truth['sigma_y']:g} Pa, "
                     f"eta {truth['eta']:g} Pa s^m, m {truth['m']:g}\n")
         cols = [(kind.replace('_2d', '') + " alone", singles[kind]) for kind in KINDS] + [
@@ -265,7 +283,7 @@ def report(materials) -> Path:
                 ach = half_width(n, dj["interval_statistical"][n], dj["params"][n])
                 pt = des["predicted_truth"][n]
                 goals["pred"].append(ach / pt if pt > 0 and math.isfinite(pt) else math.inf)
-                dm = _load(record_path(k, "design_misfit"))
+                dm = _load(record_path(k, "design_misfit", grid=grid))
                 mis = [_fmt_hw(n, dm["predicted_guess"][n]), _fmt_hw(n, dm["predicted_worst"][n]),
                        f"{ach / dm['predicted_worst'][n]:.2f}"] if dm else ["-", "-", "-"]
                 if dm:
@@ -296,16 +314,19 @@ def report(materials) -> Path:
         summary.append(f"- The same with the design's misfit 'with' (the made recordings' misfit; worst point): "
                        f"{inside} of {len(goals['pred_misfit'])}.")
     text = "\n".join(summary) + "\n\n" + "\n".join(body)
-    return C.write_md(NAME, False, "One foam in three recordings: single, joint and designed fits on reference data",
-                      text)
+    return C.write_md(grid.page, False, "One foam in three recordings: single, joint and designed fits on reference data",
+                      text, command=NAME + ("" if grid.page == NAME else " --grid default"))
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--material", type=int, action="append", help="material index (repeatable; default all)")
     ap.add_argument("--stop-after", choices=STEPS, default=STEPS[-1])
+    ap.add_argument("--grid", choices=sorted(GRIDS), default="1cm",
+                    help="the fits' grid: dx 1 cm, or the fitter's default (records *_default, page material_study_default.md)")
     ap.add_argument("--report", action="store_true", help="rebuild the page from the records, no fits")
     args = ap.parse_args(argv)
+    grid = GRIDS[args.grid]
     mats = args.material if args.material is not None else list(range(G.N_MATERIALS))
     for k in mats:
         if not 0 <= k < G.N_MATERIALS:
@@ -316,8 +337,8 @@ def main(argv=None) -> int:
             if missing:
                 ap.error(f"material {k}: missing {missing}; make them with "
                          f"python -m experiments.reference generate --material {k}")
-            run_material(k, args.stop_after, say=lambda m: print(m, flush=True))
-    print(report(range(G.N_MATERIALS)))
+            run_material(k, args.stop_after, grid, say=lambda m: print(m, flush=True))
+    print(report(range(G.N_MATERIALS), grid))
     return 0
 
 

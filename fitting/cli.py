@@ -445,9 +445,10 @@ def add_design_parser(subparsers) -> argparse.ArgumentParser:
     ap.add_argument("--sampling", choices=SAMPLINGS, default="same",
                     help="render the predicted recording from the fit's own particle sampling or from another "
                          "(default same)")
-    ap.add_argument("--misfit", choices=MISFITS, default="render",
+    ap.add_argument("--misfit", choices=MISFITS, default="auto",
                     help="the predicted recording's misfit: the renderer's noise, or at least that of the --with "
-                         "recordings at the guess (model error like theirs) (default render)")
+                         "recordings at the guess (model error like theirs); auto: with when --with is given "
+                         "(default auto)")
     ap.add_argument("--duration", type=positive_float, default=DEFAULT_DURATION,
                     help=f"recorded time, s, unless varied (default {DEFAULT_DURATION:g})")
     ap.add_argument("--fps", type=positive_float, default=DEFAULT_FPS,

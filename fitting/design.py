@@ -54,9 +54,9 @@ ROBUST = ("worst", "mean")
 # Whose particles make the predicted recording: the fit's own ("same": the noise is the renderer's and the
 # boundary flips'), or a second sampling ("other": the misfit of another discretization of the material too).
 SAMPLINGS = ("same", "other")
-# How large the predicted recording's misfit is: the renderer's noise alone ("render"), or at least the
-# median misfit per residual of the recordings already made at the guess ("with": a model error like theirs).
-MISFITS = ("render", "with")
+# The predicted recording's misfit: the renderer's noise ("render"), or at least the recordings already made
+# have at the guess ("with": model error like theirs, which real data carry); "auto": "with" given recordings.
+MISFITS = ("auto", "render", "with")
 # Boundary-pixel flip probability of the predicted recordings: synth's default, about the tracking
 # error measured on rendered videos (docs/data.md).
 DESIGN_NOISE = 0.05
@@ -451,7 +451,7 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
            points: int = DEFAULT_POINTS, spread: float = DEFAULT_SPREAD, robust: str = "worst",
            duration: float = DEFAULT_DURATION, fps: float = DEFAULT_FPS, pixel_size: float | None = None,
            progress: Callable[[str], None] | None = None, log=None, resume: bool = False,
-           sampling: str = "same", misfit: str = "render") -> DesignResult:
+           sampling: str = "same", misfit: str = "auto") -> DesignResult:
     """Rank the candidate recordings of `scene` by their predicted 95% intervals (module docs).
 
     Args:
@@ -465,8 +465,9 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
       progress: optional callable(str) for status lines.
       sampling: "same" or "other" (`SAMPLINGS`): the predicted recording is rendered from the fit's own
         particle sampling, or from a second one (seed + 1).
-      misfit: "render" or "with" (`MISFITS`): the predicted recording's residual as rendered, or raised to
-        the median RMS per effective residual of the `with_data` recordings at the guess (needs with_data).
+      misfit: "auto", "render" or "with" (`MISFITS`): the predicted recording's residual as rendered, or
+        raised to the median RMS per effective residual of the `with_data` recordings at the guess (needs
+        with_data; the guess should then be their fit). "auto": "with" when with_data is given.
       log: a JSON file that receives each candidate's prediction as it finishes (written atomically);
         resume: take the candidates found there instead of evaluating them again (the log must be of the
         same design: CalibrationError otherwise).
@@ -493,6 +494,8 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
         raise CalibrationError(f"robust must be one of {ROBUST}, got {robust!r}")
     if misfit not in MISFITS:
         raise CalibrationError(f"misfit must be one of {MISFITS}, got {misfit!r}")
+    if misfit == "auto":
+        misfit = "with" if with_data else "render"
     if misfit == "with" and not with_data:
         raise CalibrationError("misfit 'with' takes the misfit of the recordings already made: give them (--with)")
     guess = {n: float(guess[n]) for n in names}

@@ -302,13 +302,14 @@ def test_other_sampling_adds_the_misfit_of_another_discretization():
 
 @pytest.mark.slow
 def test_misfit_with_takes_the_made_recordings_misfit(one_candidate, tmp_path):
-    """misfit='with' raises the predicted recording's residual to the made recordings' median RMS per
-    effective residual: with a copy of its own recording nothing changes; with a recording the guess
-    misfits (made at sigma_y 40 Pa, predicted at 25) the predicted interval widens."""
+    """misfit='with' (the default, 'auto', when recordings are given) raises the predicted recording's
+    residual to the made recordings' median RMS per effective residual: with a copy of its own recording
+    nothing changes; with a recording the guess misfits (made at sigma_y 40 Pa, predicted at 25) the
+    predicted interval widens."""
     res, data, path = one_candidate
     kw = dict(settings=ONE, points=1)
     one = [Variable("duration", (0.3,))]
-    same = design(PLATE, TRUTH, one, with_data=[path], **kw).best["half_width"]["sigma_y"]
+    same = design(PLATE, TRUTH, one, with_data=[path], misfit="render", **kw).best["half_width"]["sigma_y"]
     same_with = design(PLATE, TRUTH, one, with_data=[path], misfit="with", **kw).best["half_width"]["sigma_y"]
     assert same_with == pytest.approx(same, rel=1e-9)
     spec, rec = candidate_scene(PLATE, {"duration": 0.3})
@@ -316,6 +317,8 @@ def test_misfit_with_takes_the_made_recordings_misfit(one_candidate, tmp_path):
     off = _render(base.with_scene(load_scene(spec)), dict(TRUTH, sigma_y=40.0), spec, 4, [ONE.seed, 0, 0, 0])
     off_path = tmp_path / "off.h5"
     off.write(off_path)
-    render = design(PLATE, TRUTH, one, with_data=[off_path], **kw).best["half_width"]["sigma_y"]
+    render = design(PLATE, TRUTH, one, with_data=[off_path], misfit="render", **kw).best["half_width"]["sigma_y"]
     with_ = design(PLATE, TRUTH, one, with_data=[off_path], misfit="with", **kw).best["half_width"]["sigma_y"]
-    assert with_ > 1.5 * render
+    auto = design(PLATE, TRUTH, one, with_data=[off_path], **kw)
+    assert with_ > 1.5 * render and auto.best["half_width"]["sigma_y"] == pytest.approx(with_, rel=1e-9)
+    assert auto.settings["misfit"] == "with"
