@@ -53,6 +53,9 @@ def test_half_width_and_error_follow_the_design_tolerance_convention():
     assert S.half_width("m", (0.4, 0.6), 0.5) == pytest.approx(0.1)
     assert S.within("eta", 1.24, 1.0) and not S.within("sigma_y", 1.11, 1.0)
     assert S.log_width("eta", (0.5, 2.0)) == pytest.approx(math.log(4.0)) and S.log_width("m", (0.2, 0.5)) == pytest.approx(0.3)
+    assert S.covers_bounds("m", (0.2, 1.5), S.SETTINGS) and not S.covers_bounds("m", (0.3, 1.2), S.SETTINGS)
+    lo, hi = S.SETTINGS.bounds_of("eta")
+    assert S.covers_bounds("eta", (lo * 1.5, hi), S.SETTINGS) and not S.covers_bounds("eta", (1.0, 10.0), S.SETTINGS)
     assert S.error("m", 0.7, 0.6) == pytest.approx(0.1)
 
 
