@@ -9,7 +9,8 @@ residual and Jacobian are evaluated there. The predicted interval is the Gauss-N
 joint fit (`fitting.joint`) of that recording with the recordings already made (`with_data`: their
 residual at the guess sets their noise scale, their Jacobian is taken at the point). It is what the
 fitter reports when its optimum is the truth and the model represents the data; discretization and
-model error, which widen intervals of real data, are not in it.
+model error, which widen intervals of real data, enter only through `misfit="with"` (the default with
+recordings already made: the candidate misfits as they do).
 
 Candidates that differ only in the scene's differentiable data (plate amplitude, frequency, phase,
 ramp time, sample times and positions, floor friction) share one compiled rollout.
