@@ -14,6 +14,7 @@ from .silhouette import BSPLINE_SUPPORT
 from .settings import CORRELATION_WINDOW_SUPPORTS, DEFAULT_LEVEL, DX_CHECK_ORDER, DX_CHECK_RATIO, FTOL, GCI_SAFETY, XTOL
 from .result import _format_params
 from .problem import CalibrationProblem, build_problem
+from .track import label_components
 
 
 def correlation_area(images: np.ndarray, window: int) -> float:
@@ -221,16 +222,7 @@ def count_pieces(mask) -> int:
     total = int(mask.sum())
     if total == 0:
         return 0
-    big = np.iinfo(np.int64).max
-    lab = np.where(mask, np.arange(mask.size, dtype=np.int64).reshape(mask.shape), big)
-    while True:  # each pass spreads the smallest label one pixel; a piece ends with one label
-        p = np.pad(lab, 1, constant_values=big)
-        nxt = np.minimum.reduce([lab, p[:-2, 1:-1], p[2:, 1:-1], p[1:-1, :-2], p[1:-1, 2:]])
-        nxt = np.where(mask, nxt, big)
-        if np.array_equal(nxt, lab):
-            break
-        lab = nxt
-    _, sizes = np.unique(lab[mask], return_counts=True)
+    _, sizes = label_components(mask, connectivity=4)
     return int(np.sum(sizes >= max(4, PIECE_FRACTION * total)))
 
 
