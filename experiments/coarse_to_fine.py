@@ -31,6 +31,7 @@ from experiments import _common as C
 from fitting import FitSettings, build_problem, read_silhouettes
 from fitting import optim
 from fitting.check import fit_uncertainty
+from fitting.design import TOLERANCE
 from fitting.settings import FTOL, XTOL
 from jaxfoam.guards import atomic_output
 
@@ -41,8 +42,6 @@ RECORDS = C.RESULTS / NAME
 LOGS = Path(__file__).resolve().parents[1] / "out" / NAME
 RATIO = 1.0 / math.sqrt(2.0)   # fine dx / fit dx: the discretization check's finer grid
 ITERATIONS = 8                 # continuation's LM iterations: past the check's 4, where its moves had not settled
-TOLERANCE = {"mu": 0.10, "sigma_y": 0.10, "eta": 0.25}   # relative; m absolute below
-M_TOLERANCE = 0.1
 
 
 def richardson(z_coarse, z_fine, ratio: float = RATIO, order: float = 1.0):
@@ -89,9 +88,8 @@ def continue_one(path: Path, fit: dict, iterations: int) -> dict:
 
 
 def within(name: str, value: float, truth: float) -> bool:
-    if name == "m":
-        return abs(value - truth) <= M_TOLERANCE
-    return abs(value / truth - 1.0) <= TOLERANCE[name]
+    err = abs(value - truth) if name == "m" else abs(value / truth - 1.0)
+    return err <= TOLERANCE[name]
 
 
 def error_text(name: str, value: float, truth: float) -> str:

@@ -203,9 +203,8 @@ def within(name: str, value: float, truth: float) -> bool:
 
 
 def half_width(name: str, interval, value: float) -> float:
-    lo, hi = interval
-    hw = 0.5 * (hi - lo)
-    return hw if name == "m" else hw / abs(value)
+    """`fitting.design.half_widths` of one parameter: relative to the value, absolute for m."""
+    return half_widths({name: interval}, {name: value})[name]
 
 
 def log_width(name: str, interval) -> float:
