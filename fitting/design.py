@@ -283,10 +283,9 @@ def parameter_points(guess: dict, names, count: int = DEFAULT_POINTS, spread: fl
             if bounds and n in bounds:  # a point past a bound goes halfway to it: the transforms are open there
                 lo, hi = bounds[n]
                 g = guess[n]
-                if not v < hi:
-                    v = 0.5 * (g + hi) if n in ABSOLUTE or not math.isfinite(hi) else math.sqrt(g * hi)
-                elif not v > lo:
-                    v = 0.5 * (g + lo) if n in ABSOLUTE or lo <= 0 else math.sqrt(g * lo)
+                if not lo < v < hi:
+                    b = hi if v >= hi else lo
+                    v = 0.5 * (g + b) if n in ABSOLUTE else math.sqrt(g * b)
             p[n] = float(v)
         out.append(p)
     return out
