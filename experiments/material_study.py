@@ -95,6 +95,14 @@ def _fit_record(res, wall: float, files) -> dict:
                    if hasattr(res, "information_share") else {}))
 
 
+def _design_inputs(k: int, grid: Grid, misfit: str):
+    """The hanging plate's scene (dict) and the design's keyword arguments: the drop and squeeze of
+    material k as recordings made, the reference camera's pixels, the given misfit."""
+    return (read_silhouettes(data_path(KINDS[0], k)).scene_dict,
+            dict(settings=grid.settings, duration=DESIGN_DURATION, fps=DESIGN_FPS, pixel_size=G.PIXEL_SIZE,
+                 with_data=[read_silhouettes(data_path(kind, k)) for kind in KINDS[1:]], misfit=misfit))
+
+
 def run_material(k: int, stop_after: str, grid: Grid = GRIDS["1cm"], say=print) -> None:
     truth = G.materials()[k]
     for kind in KINDS:
@@ -120,13 +128,9 @@ def run_material(k: int, stop_after: str, grid: Grid = GRIDS["1cm"], say=print) 
     scene_file = RECORDS / f"mat{k}_designed_scene{grid.tag}.json"
     if not out.exists():
         guess = inside_bounds({n: _load(record_path(k, "joint", grid=grid))["params"][n] for n in NAMES})
-        with_data = [read_silhouettes(data_path(kind, k)) for kind in KINDS[1:]]
-        plate = read_silhouettes(data_path(KINDS[0], k))
         variables = [Variable("plate.motion.amplitude", AMPLITUDES), Variable("plate.motion.frequency", FREQUENCIES)]
-        kw = dict(settings=grid.settings, duration=DESIGN_DURATION, fps=DESIGN_FPS, pixel_size=G.PIXEL_SIZE,
-                  with_data=with_data, misfit="render")
+        scene, kw = _design_inputs(k, grid, "render")
         t = time.perf_counter()
-        scene = json.loads(plate.scene_json) if isinstance(plate.scene_json, str) else plate.scene_json
         res = design(scene, guess, variables, points=DESIGN_POINTS, **kw)
         wall = time.perf_counter() - t
         best = res.best
@@ -143,10 +147,7 @@ def run_material(k: int, stop_after: str, grid: Grid = GRIDS["1cm"], say=print) 
     out_m = record_path(k, "design_misfit", grid=grid)
     if not out_m.exists():  # the best candidate predicted once more with the made recordings' misfit
         rec = _load(out)
-        plate = read_silhouettes(data_path(KINDS[0], k))
-        scene = json.loads(plate.scene_json) if isinstance(plate.scene_json, str) else plate.scene_json
-        kw = dict(settings=grid.settings, duration=DESIGN_DURATION, fps=DESIGN_FPS, pixel_size=G.PIXEL_SIZE,
-                  with_data=[read_silhouettes(data_path(kind, k)) for kind in KINDS[1:]], misfit="with")
+        scene, kw = _design_inputs(k, grid, "with")
         one = [Variable(n, (v,)) for n, v in rec["values"].items()]
         t = time.perf_counter()
         best = design(scene, rec["guess"], one, points=DESIGN_POINTS, **kw).best
