@@ -109,11 +109,12 @@ def report(path):
     m = meta[-1] if meta else {}
     lines = ["# The step and the gradient calls on an accelerator", "",
              f"_Regenerate with `python -m experiments bench_gpu` on the machine. Backend {m.get('backend')}, "
-             f"{m.get('device')}, JAX {m.get('jax')}, {m.get('date', '')}._", "",
-             "## The step (bench_step.py's foam block), M particle-steps/s", "",
-             "| case | particles | grid | dtype | tuning | substeps per run | median | best | compile s |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             f"{m.get('device')}, JAX {m.get('jax')}, {m.get('date', '')}._"]
     steps = [r for r in rows if r["kind"] == "step"]
+    if steps:
+        lines += ["", "## The step (bench_step.py's foam block), M particle-steps/s", "",
+                  "| case | particles | grid | dtype | tuning | substeps per run | median | best | compile s |",
+                  "|---|---|---|---|---|---|---|---|---|"]
     for r in steps:
         lines.append(f"| {r['dim']}D | {r['n']:,} | {r['cells']}^{r['dim']} | {r['dtype']} | {r['variant']} | {r['steps']} | "
                      f"{r['rate'] / 1e6:.1f} | {r['best_rate'] / 1e6:.1f} | {r['compile_s']:.1f} |"

@@ -9,13 +9,16 @@ single number for "the model can represent the data": 1 or less when it can), an
 
 Each fit writes experiments/results/reference_fits/<file>.json, and its fit log to out/reference_fits/;
 a rerun skips finished fits and resumes a killed one from its log. `--report` rebuilds the table from the records only.
+`--from-fit FILE=FIT.json` records a default fit of FILE made by `jaxfoam fit` elsewhere (on a GPU, say):
+its settings are checked against the defaults and the loss at the truth is computed here.
 
-Usage: python -m experiments reference_fits [--only TEXT] [--report]
+Usage: python -m experiments reference_fits [--only TEXT] [--report] [--from-fit FILE=FIT.json ...]
 Writes experiments/results/reference_fits.md. SI units.
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -26,6 +29,8 @@ import jax
 
 from experiments import _common as C
 from fitting import DEFAULT_BOUNDS, FIT_FIELDS, FitSettings, build_problem, calibrate, read_silhouettes
+from fitting.problem import fit_grid
+from fitting.settings import DEFAULT_DX_REFIT, DEFAULT_MAX_ITER
 
 DATA = Path(__file__).resolve().parent / "reference" / "data"
 NAME = "reference_fits"
@@ -52,6 +57,48 @@ def fit_one(path: Path, settings: FitSettings) -> dict:
                 loss_truth=float(loss_truth), dx=float(problem.dx), wall=float(res.wall_time), run_wall=wall,
                 reproduces=bool(res.reproduces_data), notes=list(res.notes),
                 date=time.strftime("%Y-%m-%d"))
+
+
+# Settings of a fit.json that must equal the defaults for it to count as a default fit (dx and ppc are
+# compared with the resolved defaults of the file's problem).
+_DEFAULT_FIELDS = ("optimizer", "fixed", "starts", "initial", "time_window", "time_budget", "seed", "level", "dtype",
+                   "distance_weight", "chamfer_weight", "fit_also", "resample", "fracture")
+
+
+def record_from_fit(path: Path, fit_json: Path) -> dict:
+    """The record of a default fit of `path` made elsewhere (`jaxfoam fit path --out fit_json`); raises
+    ValueError naming the first setting that is not the default. The loss at the truth is computed here."""
+    fit = json.loads(fit_json.read_text())
+    data = read_silhouettes(path)
+    settings = FitSettings()
+    problem = build_problem(data, settings)
+    got, default = fit["settings"], dataclasses.asdict(settings.validate())
+    dim = problem.scene.dim
+    checks = [("dx", got["dx"], float(problem.dx)), ("ppc", got["ppc"], fit_grid(problem.scene, settings)[1]),
+              ("max_iter", got["max_iter"], DEFAULT_MAX_ITER[settings.optimizer]),
+              ("dx_refit", got["dx_refit"], DEFAULT_DX_REFIT[dim])]
+    checks += [(k, got[k], default[k]) for k in _DEFAULT_FIELDS]
+    checks += [("bounds", got["bounds"], {n: list(DEFAULT_BOUNDS[n]) for n in problem.transform.names}),
+               ("data.frames_used", len(fit["data"]["frames_used"]), len(data.times) - 1),
+               ("data.scene_kind", fit["data"]["scene_kind"], problem.scene.kind)]
+    for name, a, b in checks:
+        same = (abs(a - b) <= 1e-12 * abs(b)) if isinstance(b, float) and a is not None else _plain(a) == _plain(b)
+        if not same:
+            raise ValueError(f"{fit_json}: settings.{name} = {a!r} is not the default fit's {b!r}; "
+                             "only a default `jaxfoam fit` of the file is a reference fit")
+    truth = {n: float(data.truth[n]) for n in problem.transform.names}
+    loss_truth = problem.loss(problem.transform.to_unconstrained(truth))
+    return dict(file=path.name, truth=truth, params={n: float(fit["params"][n]) for n in fit["fitted"]},
+                interval={n: list(map(float, fit["interval"][n])) for n in fit["fitted"]},
+                identifiable={n: bool(fit["identifiable"][n]) for n in fit["fitted"]}, loss=float(fit["loss"]),
+                loss_truth=float(loss_truth), dx=float(problem.dx), wall=float(fit["wall_time"]),
+                reproduces=bool(fit["reproduces_data"]), notes=list(fit["notes"]),
+                made_from=str(fit_json), date=time.strftime("%Y-%m-%d"))
+
+
+def _plain(v):
+    """JSON-comparable form (tuples as lists)."""
+    return json.loads(json.dumps(v))
 
 
 def write_record(path: Path, record: dict) -> None:
@@ -92,6 +139,10 @@ def report(records: list[dict]) -> str:
         f"{within['sigma_y'][0]} of {within['sigma_y'][1]} (goal: 6 of 9); loss at truth / fitted loss at most "
         f"{GOAL_RATIO} in {sum(x <= GOAL_RATIO for x in two_d)} of {len(two_d)} (goal: 8 of 9).", "",
         C.md_table(head, rows)]
+    elsewhere = [f"{r['file']} ({r['made_from']})" for r in records if r.get("made_from")]
+    if elsewhere:
+        lines += ["", "Fits made by `jaxfoam fit` on another machine and recorded with `--from-fit` (their wall "
+                  "times are that machine's; the loss at the truth was computed here): " + ", ".join(elsewhere) + "."]
     return "\n".join(lines)
 
 
@@ -99,8 +150,20 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--only", default=None, help="fit only the files whose name contains TEXT")
     ap.add_argument("--report", action="store_true", help="only rebuild the table from the records")
+    ap.add_argument("--from-fit", nargs="+", default=[], metavar="FILE=FIT.json",
+                    help="record default fits made elsewhere: FILE a name in experiments/reference/data")
     args = ap.parse_args(sys.argv[1:] if argv is None else argv)
     jax.config.update("jax_enable_x64", True)
+    for item in args.from_fit:
+        name, sep, fit_path = item.partition("=")
+        if not sep or not (DATA / name).exists():
+            raise SystemExit(f"--from-fit {item!r}: expected FILE=FIT.json with FILE one of "
+                             f"{sorted(p.name for p in DATA.glob('*.h5'))}")
+        RECORDS.mkdir(parents=True, exist_ok=True)
+        write_record(RECORDS / f"{Path(name).stem}.json", record_from_fit(DATA / name, Path(fit_path)))
+        print(f"recorded {name} from {fit_path}", flush=True)
+    if args.from_fit:
+        args.report = True
     files = sorted(DATA.glob("*.h5"))
     if args.only:
         files = [p for p in files if args.only in p.name]
