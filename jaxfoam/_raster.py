@@ -32,6 +32,9 @@ LIGHT_2D = (-0.45, 0.55, 0.7)
 FOAM_RGB = (0.96, 0.95, 0.91)  # shaving cream: warm white
 FLOOR_RGB = ((0.60, 0.61, 0.63), (0.68, 0.69, 0.71))  # checker squares
 PLATE_RGB = (0.36, 0.27, 0.21)  # the particle view's PLATE_COLOR
+COLLIDER_RGB = (0.62, 0.55, 0.47)  # SDF colliders (a face, crackers): lighter than the plates
+# Marching-cubes cells along the view box's longest side for an SDF collider's surface.
+COLLIDER_CELLS = 96
 SKY_RGB = ((0.93, 0.95, 0.97), (0.80, 0.84, 0.88))  # background, top to bottom
 # The view spans the foam and the plates over the shown frames plus this fraction on each side.
 VIEW_MARGIN = 0.12
@@ -130,10 +133,12 @@ class View:
     """The region a picture shows and its pixel mapping, fixed for every frame of one sheet or video."""
 
     def __init__(self, traj, indices, width: int, height: int | None = None, camera: Camera | None = None,
-                 multiple: int = 1):
+                 multiple: int = 1, colliders=()):
         """width px; height px (default: the view's aspect, within ASPECT_RANGE); both rounded up to
-        `multiple` (a video encoder's block size)."""
+        `multiple` (a video encoder's block size); colliders: objects with `phi(x, t)` (m, s ->
+        m; `jaxfoam.sdf.SDFCollider`) drawn where phi < 0 inside the view."""
         self.traj, self.scene, self.dim = traj, traj.scene, traj.dim
+        self.colliders = tuple(colliders)
         self.camera = camera or Camera()
         act = np.asarray(traj.frames["active"][indices], bool)
         pts = [np.asarray(traj.frames["x"][indices], np.float64)[act]]
@@ -193,7 +198,8 @@ class View:
         return np.clip(np.round(down(rgb) * 255.0), 0, 255).astype(np.uint8), down(foam)
 
     def _geometry_3d(self, k: int):
-        """Triangles (f, 3, 3) m, per-triangle material (0 foam, 1 floor, 2 plate), vertex normals (f, 3, 3)."""
+        """Triangles (f, 3, 3) m, per-triangle material (0 foam, 1 floor, 2 plate, 3 collider), vertex
+        normals (f, 3, 3)."""
         verts, faces, normals = _surface.frame_surface(self.traj, k)
         tris, kinds, vn = [verts[faces]], [np.zeros(len(faces), int)], [normals[faces]]
         extra = []
@@ -205,6 +211,10 @@ class View:
         t = float(self.traj.times[k])
         for plate in self.scene.plates:
             extra.append((_box_triangles(np.asarray(plate.position(t), float), plate.half_size), 2))
+        for c in self.colliders:
+            tri = self._collider_triangles(c, t)
+            if len(tri):
+                extra.append((tri, 3))
         for tri, kind in extra:
             n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
             n /= np.linalg.norm(n, axis=1, keepdims=True)
@@ -212,6 +222,26 @@ class View:
             kinds.append(np.full(len(tri), kind))
             vn.append(np.repeat(n[:, None], 3, 1))
         return np.concatenate(tris), np.concatenate(kinds), np.concatenate(vn)
+
+    def _collider_phi(self, c, pts: np.ndarray, t: float) -> np.ndarray:
+        import jax.numpy as jnp
+
+        x = jnp.asarray(pts.reshape(-1, self.dim))
+        return np.array(c.phi(x, jnp.asarray(t, x.dtype)), np.float64).reshape(pts.shape[:-1])
+
+    def _collider_triangles(self, c, t: float) -> np.ndarray:
+        """The collider's zero level set inside the view box at time t, (f, 3, 3) m (marching cubes)."""
+        from skimage.measure import marching_cubes
+
+        h = float(np.max(self.hi - self.lo)) / COLLIDER_CELLS
+        axes = [np.arange(self.lo[i] - h, self.hi[i] + 2 * h, h) for i in range(3)]
+        phi = self._collider_phi(c, np.stack(np.meshgrid(*axes, indexing="ij"), -1), t)
+        # Outside the view box the shape is cut off: the box's faces close it.
+        phi[[0, -1]], phi[:, [0, -1]], phi[:, :, [0, -1]] = h, h, h
+        if phi.min() >= 0.0:
+            return np.zeros((0, 3, 3))
+        verts, faces, _, _ = marching_cubes(phi, 0.0, spacing=(h, h, h))
+        return (verts + np.array([a[0] for a in axes]))[faces]
 
     def _frame_3d(self, k: int):
         f = SUPERSAMPLE
@@ -236,6 +266,7 @@ class View:
         base = np.empty((len(tri), 3))
         base[kind == 0] = FOAM_RGB
         base[kind == 2] = PLATE_RGB
+        base[kind == 3] = COLLIDER_RGB
         on_floor = kind == 1
         square = nice_length(float(np.max(self.hi - self.lo)) / FLOOR_SQUARES)
         check = (np.floor(p[on_floor, 0] / square) + np.floor(p[on_floor, 2] / square)).astype(int) % 2
@@ -304,6 +335,12 @@ class View:
             box = iny[:, None] & inx[None, :]
             rgb[box] = np.asarray(PLATE_RGB) * (AMBIENT + DIFFUSE * 0.8)
             foam[box] = 0.0
+        if self.colliders:
+            pts = np.stack(np.meshgrid(xs, ys, indexing="xy"), -1)  # (H, W, 2)
+            for c in self.colliders:
+                inside = self._collider_phi(c, pts, t) < 0.0
+                rgb[inside] = np.asarray(COLLIDER_RGB) * (AMBIENT + DIFFUSE * 0.8)
+                foam[inside] = 0.0
         return rgb, foam
 
 

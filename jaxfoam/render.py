@@ -298,14 +298,14 @@ TITLE_PX = 22
 GAP_PX = 8
 
 
-def _surface_view(traj, indices, width_px, camera, multiple=1):
+def _surface_view(traj, indices, width_px, camera, multiple=1, colliders=()):
     from . import _raster
     from ._surface import require_skimage
 
     require_skimage()
     if camera is not None and not isinstance(camera, _raster.Camera):
         camera = _raster.Camera(*camera)
-    return _raster.View(traj, indices, width_px, camera=camera, multiple=multiple)
+    return _raster.View(traj, indices, width_px, camera=camera, multiple=multiple, colliders=colliders)
 
 
 def _surface_title(traj, view) -> str:
@@ -328,14 +328,15 @@ def _with_scale_bar(rgb: np.ndarray, view) -> np.ndarray:
 
 
 def render_surface_sheet(traj, out_png, n_frames: int = 8, camera=None, ncols: int | None = None,
-                         panel_px: int = SURFACE_PANEL_PX, dpi: int = 130) -> str:
+                         panel_px: int = SURFACE_PANEL_PX, dpi: int = 130, colliders=()) -> str:
     """Draw a grid of shaded surface renders (3D: lit mesh, floor, plates; 2D: the lit outline fill) to a
     PNG; returns the path.
 
     Args: traj (path, SavedTrajectory or Trajectory), out_png, n_frames (panels, evenly spread),
       camera ((azimuth, elevation) deg or a jaxfoam._raster.Camera; 3D only), ncols (default at most 4),
-      panel_px (panel width, pixels), dpi (text size). The picture is ncols (panel_px + GAP_PX) + GAP_PX
-      pixels wide. Needs the viz and export extras (matplotlib, scikit-image).
+      panel_px (panel width, pixels), dpi (text size), colliders (`jaxfoam.sdf.SDFCollider`s of the run,
+      drawn where their phi < 0). The picture is ncols (panel_px + GAP_PX) + GAP_PX pixels wide. Needs
+      the viz and export extras (matplotlib, scikit-image).
     """
     _require_matplotlib()
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -345,7 +346,7 @@ def render_surface_sheet(traj, out_png, n_frames: int = 8, camera=None, ncols: i
     if traj.num_frames == 0:
         raise ValueError("the trajectory holds no frame to draw")
     idx = _frame_indices(traj.num_frames, int(n_frames))
-    view = _surface_view(traj, idx, int(panel_px), camera)
+    view = _surface_view(traj, idx, int(panel_px), camera, colliders=colliders)
     n = len(idx)
     ncols = math.ceil(n / math.ceil(n / 4)) if ncols is None else max(1, int(ncols))
     nrows = math.ceil(n / ncols)
@@ -368,11 +369,15 @@ def render_surface_sheet(traj, out_png, n_frames: int = 8, camera=None, ncols: i
     return os.fspath(out_png)
 
 
-def render_surface_video(traj, out_mp4, fps: int = 20, camera=None, width_px: int = 800) -> str:
+def render_surface_video(traj, out_mp4, fps: int = 20, camera=None, width_px: int = 800, colliders=(),
+                         frames_dir=None) -> str:
     """Write every frame's shaded surface render to an MP4 video (H.264); returns the path. The frame
-    size is width_px rounded up to a multiple of 16 by the view's height (also a multiple of 16)."""
+    size is width_px rounded up to a multiple of 16 by the view's height (also a multiple of 16).
+    colliders: as in `render_surface_sheet`; frames_dir: also write each frame there as frame_###.png."""
     imageio, FigureCanvasAgg, Figure, traj, idx = _video_inputs(traj, fps)
-    view = _surface_view(traj, idx, int(width_px), camera, multiple=16)
+    view = _surface_view(traj, idx, int(width_px), camera, multiple=16, colliders=colliders)
+    if frames_dir is not None:
+        os.makedirs(frames_dir, exist_ok=True)
     fig = Figure(figsize=(view.width / 100, view.height / 100), dpi=100)
     canvas = FigureCanvasAgg(fig)
     image = fig.figimage(np.zeros((view.height, view.width, 3), np.uint8), origin="upper")
@@ -383,5 +388,9 @@ def render_surface_video(traj, out_mp4, fps: int = 20, camera=None, width_px: in
             image.set_data(_with_scale_bar(view.frame(int(k))[0], view))
             label.set_text(f"t = {float(traj.times[k]):.3f} s   (bar: {view.scale_bar() * 100:g} cm)")
             canvas.draw()
-            writer.append_data(np.asarray(canvas.buffer_rgba())[:, :, :3])
+            rgb = np.asarray(canvas.buffer_rgba())[:, :, :3]
+            writer.append_data(rgb)
+            if frames_dir is not None:
+                with atomic_output(os.path.join(frames_dir, f"frame_{int(k):03d}.png")) as tmp:
+                    imageio.imwrite(tmp, rgb, format="png")
     return os.fspath(out_mp4)

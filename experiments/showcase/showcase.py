@@ -10,9 +10,14 @@ A showcase file (JSON) holds:
   cpu, gpu: run settings {dx (m), ppc, duration (s), frames, dtype}: `cpu` is what runs here on a
     shared 2-core machine (short, coarse); `gpu` is the setting to scale up to on a GPU.
   views: pairs of axes to draw, e.g. [[0, 1], [0, 2]] (front and top views).
+  camera: [azimuth, elevation] degrees of the surface renders (optional).
+  measure: a list of measurements (experiments/showcase/measure.py), e.g. {"type": "detachment"}.
 
-Usage: python experiments/showcase/showcase.py experiments/showcase/pie_throw.json [--gpu]
-Writes experiments/showcase/out/<name>/frame_###.png, <name>.mp4, <name>_sheet.png, <name>.md.
+Usage: python experiments/showcase/showcase.py experiments/showcase/pie_throw.json [--gpu] [--reuse]
+Writes to experiments/showcase/out/<name>/: the particle view (frame_###.png, <name>.mp4,
+<name>_sheet.png), the shaded surfaces (surface/frame_###.png, <name>_surface.mp4,
+<name>_surface_sheet.png), the measurements (<name>_measure.json) and <name>.md; the frames themselves
+go to frames.npz there (not committed), which --reuse renders and measures again without simulating.
 """
 from __future__ import annotations
 
@@ -29,13 +34,19 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 import jaxfoam  # noqa: E402
 from jaxfoam.fracture import FractureConfig  # noqa: E402
 from jaxfoam.resample import ResampleConfig  # noqa: E402
 from jaxfoam.sdf import collider_from_spec  # noqa: E402
+from jaxfoam._trajectory import as_saved_trajectory  # noqa: E402
+from jaxfoam.render import render_surface_sheet, render_surface_video  # noqa: E402
+
+from measure import measure_all  # noqa: E402  (experiments/showcase/measure.py, beside this file)
 
 HERE = Path(__file__).resolve().parent
-KEYS = {"name", "description", "scene", "params", "colliders", "resample", "fracture", "cpu", "gpu", "views"}
+KEYS = {"name", "description", "scene", "params", "colliders", "resample", "fracture", "cpu", "gpu", "views",
+        "camera", "measure"}
 RUN_KEYS = {"dx", "ppc", "duration", "frames", "dtype", "note"}
 # Plastic rates drawn over this many decades below the top of the colour scale (creep to splash).
 GAMMA_DECADES = 3.0
@@ -72,7 +83,8 @@ def load_showcase(path):
                 raise ValueError(f"showcase {path}: {k}: unknown key(s) {bad}; allowed {sorted(RUN_KEYS)}")
     return dict(name=spec["name"], description=spec.get("description", ""), scene=scene, params=params,
                 colliders=colliders, resample=resample, fracture=fracture, cpu=spec["cpu"], gpu=spec.get("gpu"),
-                views=spec.get("views", [[0, 1]]), spec=spec)
+                views=spec.get("views", [[0, 1]]), camera=spec.get("camera"), measure=spec.get("measure", []),
+                spec=spec)
 
 
 def make_simulator(show, settings, frame_times=None):
@@ -87,7 +99,7 @@ def make_simulator(show, settings, frame_times=None):
 
 
 def observe(state, params):
-    return dict(x=state.x, gamma_dot=state.gamma_dot, active=state.active)
+    return dict(x=state.x, gamma_dot=state.gamma_dot, active=state.active, mass=state.mass)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -172,7 +184,7 @@ def _compact_png(path):
     pal.save(path, optimize=True)
 
 
-def run(path, gpu=False, out=None):
+def run(path, gpu=False, out=None, reuse=False):
     show = load_showcase(path)
     settings = show["gpu"] if gpu else show["cpu"]
     sim = make_simulator(show, settings)
@@ -181,11 +193,20 @@ def run(path, gpu=False, out=None):
     n0 = int(np.sum(np.asarray(sim.state0.active)))
     print(f"{show['name']}: {n0} points ({sim.state0.capacity} slots), {sim.total_substeps} substeps of "
           f"{sim.dt:.3g} s, grid {sim.grid.shape}", flush=True)
-    t0 = time.perf_counter()
-    final, frames, health = sim.rollout(show["params"], observe=observe)
-    frames = jax.device_get(frames)
-    seconds = time.perf_counter() - t0
-    sim.check(frames, health)
+    saved = out / "frames.npz"
+    if reuse:
+        with np.load(saved) as z:
+            frames, seconds = {k: z[k] for k in z.files if k != "seconds"}, float(z["seconds"])
+    else:
+        t0 = time.perf_counter()
+        final, frames, health = sim.rollout(show["params"], observe=observe)
+        frames = jax.device_get(frames)
+        seconds = time.perf_counter() - t0
+        sim.check(frames, health)
+        frames = {k: np.asarray(v) for k, v in frames.items()}
+        tmp = out / "frames.tmp.npz"
+        np.savez(tmp, seconds=seconds, **frames)
+        tmp.replace(saved)
     times = np.asarray(sim.plan.frame_times)
     lo, hi = np.asarray(show["scene"].domain_min), np.asarray(show["scene"].domain_max)
     lims = [((lo[a], hi[a]), (lo[b], hi[b])) for a, b in show["views"]]
@@ -197,11 +218,25 @@ def run(path, gpu=False, out=None):
         files.append(f)
     _sheet(files, out / f"{show['name']}_sheet.png")
     _video(files, out / f"{show['name']}.mp4")
+    t1 = time.perf_counter()
+    traj = as_saved_trajectory(dict(frames=frames, times=times, params=show["params"], scene=dict(show["spec"]["scene"], name=show["name"]),
+                                            dx=float(settings["dx"]), dt=float(sim.dt), substeps=int(sim.substeps),
+                                            ppc=settings.get("ppc")))
+    camera = tuple(show["camera"]) if show.get("camera") else None
+    render_surface_sheet(traj, out / f"{show['name']}_surface_sheet.png", camera=camera, colliders=show["colliders"])
+    render_surface_video(traj, out / f"{show['name']}_surface.mp4", fps=10, camera=camera,
+                         colliders=show["colliders"], frames_dir=out / "surface")
+    render_s = time.perf_counter() - t1
+    measured = measure_all(show.get("measure", []), frames, times, show["scene"], show["colliders"],
+                           float(settings["dx"]))
+    (out / f"{show['name']}_measure.json").write_text(json.dumps(measured, indent=1) + "\n")
     n_end = int(np.sum(frames["active"][-1]))
     text = (f"# {show['name']}\n\n{show['description']}\n\nSettings ({'gpu' if gpu else 'cpu'}): "
             f"{json.dumps(settings)}; {n0} points at start, {n_end} at the end; {sim.total_substeps} substeps "
             f"of {sim.dt:.3g} s; grid {sim.grid.shape}; rollout wall time {seconds:.1f} s (compile included) on "
-            f"{'a GPU' if gpu else 'a shared 2-core CPU'}.\n\n![sheet]({show['name']}_sheet.png)\n")
+            f"{'a GPU' if gpu else 'a shared 2-core CPU'}; surface renders {render_s:.0f} s.\n\n"
+            f"Measurements: `{show['name']}_measure.json`.\n\n"
+            f"![surfaces]({show['name']}_surface_sheet.png)\n\n![particles]({show['name']}_sheet.png)\n")
     (out / f"{show['name']}.md").write_text(text)
     print(f"{show['name']}: {seconds:.1f} s; wrote {out}", flush=True)
     return dict(seconds=seconds, frames=frames, sim=sim)
@@ -245,8 +280,9 @@ def main(argv=None):
     ap.add_argument("scene", help="showcase JSON file")
     ap.add_argument("--gpu", action="store_true", help="use the file's 'gpu' settings (scale-up)")
     ap.add_argument("--out", help="output folder (default experiments/showcase/out/<name>)")
+    ap.add_argument("--reuse", action="store_true", help="render and measure the frames.npz of an earlier run")
     args = ap.parse_args(argv)
-    run(args.scene, args.gpu, args.out)
+    run(args.scene, args.gpu, args.out, args.reuse)
 
 
 if __name__ == "__main__":

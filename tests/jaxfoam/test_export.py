@@ -227,7 +227,41 @@ def test_surface_video_has_one_frame_per_trajectory_frame(tmp_path):
 
     from jaxfoam.render import render_surface_video
 
-    out = render_surface_video(block_trajectory(2, frames=3), tmp_path / "v.mp4", fps=10, width_px=200)
+    out = render_surface_video(block_trajectory(2, frames=3), tmp_path / "v.mp4", fps=10, width_px=200,
+                               frames_dir=tmp_path / "png")
     with imageio.get_reader(out) as r:
         frames = [f for f in r]  # the reader reports an infinite length, which list() would use
     assert len(frames) == 3 and frames[0].shape[1] == 208 and frames[0].shape[0] % 16 == 0
+    # frames_dir: one PNG per frame, of the video's size
+    pngs = sorted((tmp_path / "png").glob("frame_*.png"))
+    assert [p.name for p in pngs] == ["frame_000.png", "frame_001.png", "frame_002.png"]
+    assert imageio.imread(pngs[-1]).shape[:2] == frames[0].shape[:2]
+
+
+@pytest.mark.parametrize("dim", [3, 2])
+def test_surface_render_draws_an_sdf_collider_where_its_phi_is_negative(dim):
+    """Contract of `colliders=`: a sphere collider beside the block is drawn in COLLIDER_RGB's shades,
+    its projected area that of its disc within 10% (3D: marching cubes of phi; 2D: phi < 0 per pixel),
+    and the foam's pixels are unchanged away from it."""
+    from jaxfoam import _raster, render
+    from jaxfoam.sdf import collider_from_spec
+
+    # Frame 1 (the block 5 cm higher) widens the view; frame 0 leaves room above the block for the sphere.
+    saved = jaxfoam._trajectory.as_saved_trajectory(block_trajectory(dim, frames=2, shift=0.05))
+    r, centre = 0.015, [0.0025, 0.085] + ([0.00125] if dim == 3 else [])
+    sphere = collider_from_spec({"shape": {"type": "sphere", "center": centre, "radius": r}})
+    cam = _raster.Camera(0.0, 0.0) if dim == 3 else None  # looking along z: the sphere's disc is a circle
+    plain = _raster.View(saved, np.arange(2), render.SURFACE_PANEL_PX, camera=cam)
+    view = _raster.View(saved, np.arange(2), render.SURFACE_PANEL_PX, camera=cam, colliders=(sphere,))
+    rgb0, foam0 = plain.frame(0)
+    rgb, foam = view.frame(0)
+    # Collider pixels: the colour changed from the plain render and is a shade of COLLIDER_RGB.
+    col = np.asarray(_raster.COLLIDER_RGB)
+    changed = np.any(rgb.astype(int) != rgb0.astype(int), axis=-1) & (foam < 0.01)
+    px = rgb[changed].astype(float)
+    ratio = px / np.maximum(px.sum(-1, keepdims=True), 1e-9)
+    shade_of = np.all(np.abs(ratio - col / col.sum()) < 0.03, axis=-1)
+    area_m2 = shade_of.sum() / view.scale ** 2
+    assert abs(area_m2 / (np.pi * r ** 2) - 1) < 0.10, area_m2 / (np.pi * r ** 2)
+    # The foam is where it was (the sphere is above the block, not in front of it).
+    np.testing.assert_allclose(foam.sum(), foam0.sum(), rtol=1e-6)
