@@ -10,6 +10,9 @@ points is empty, so loose debris points neither close a gap nor make a peak.
   fraction_near: the mass fraction within `distance` m of a collider (phi < distance) at given times.
   column_height: the height above base_y of the column of slabs occupied without a gap from base_y up,
     over a footprint (x and z ranges, m), at given times.
+  mass_in_box: the mass fraction inside a box (x, y, z ranges, m) at given times.
+  pieces: the pieces of foam at given times: the cells of size h holding a point, joined across faces,
+    edges and corners (skimage.measure.label); pieces of at least min_fraction of the mass are counted.
 """
 from __future__ import annotations
 
@@ -17,7 +20,7 @@ import math
 
 import numpy as np
 
-MEASURES = ("detachment", "wobble", "fraction_near", "column_height")
+MEASURES = ("detachment", "wobble", "fraction_near", "column_height", "mass_in_box", "pieces")
 
 
 def occupied_slabs(y: np.ndarray, lo: float, hi: float, h: float, min_count: int) -> tuple[np.ndarray, np.ndarray]:
@@ -121,6 +124,43 @@ def column_height(frames, times, base_y: float, footprint, h: float, min_count: 
     return out
 
 
+def _frame_at(times, t) -> int:
+    return int(np.argmin(np.abs(np.asarray(times) - t)))
+
+
+def mass_in_box(frames, times, box, at) -> dict:
+    """Mass fraction of the foam inside box ((x0, x1), (y0, y1), (z0, z1)) m at the frames nearest `at`."""
+    lo, hi = np.asarray(box, float).T
+    out = {}
+    for t in at:
+        k = _frame_at(times, t)
+        a = frames["active"][k]
+        x, m = frames["x"][k][a], frames["mass"][k][a]
+        inside = np.all((x >= lo) & (x <= hi), axis=1)
+        out[f"{float(times[k]):.3f}"] = float(np.sum(m[inside]) / np.sum(m))
+    return out
+
+
+def pieces(frames, times, h: float, min_fraction: float, at) -> dict:
+    """Pieces of the foam at the frames nearest `at`: {time: {"count": pieces holding at least
+    min_fraction of the mass, "fractions": their mass fractions, largest first}}."""
+    from skimage.measure import label
+
+    out = {}
+    for t in at:
+        k = _frame_at(times, t)
+        a = frames["active"][k]
+        x, m = frames["x"][k][a], frames["mass"][k][a]
+        cell = np.floor((x - x.min(0)) / h).astype(int)
+        occupied = np.zeros(cell.max(0) + 1, bool)
+        occupied[tuple(cell.T)] = True
+        labels = label(occupied, connectivity=x.shape[1])[tuple(cell.T)]
+        mass = np.bincount(labels, weights=m) / np.sum(m)
+        big = np.sort(mass[mass >= min_fraction])[::-1]
+        out[f"{float(times[k]):.3f}"] = dict(count=int(len(big)), fractions=[round(float(f), 4) for f in big])
+    return out
+
+
 def measure_all(spec: list, frames, times, scene, colliders, dx: float) -> dict:
     """Run the showcase file's `measure` list: each entry {"type": one of MEASURES, ...}; returns a dict
     keyed by type. Raises ValueError naming an unknown type or a missing field."""
@@ -143,7 +183,11 @@ def measure_all(spec: list, frames, times, scene, colliders, dx: float) -> dict:
         elif kind == "fraction_near":
             results[kind] = fraction_near(frames, times, colliders[int(item["collider"])],
                                           float(item.get("distance", dx)), item["at"])
-        else:
+        elif kind == "column_height":
             results[kind] = column_height(frames, times, float(item["base_y"]), item["footprint"], dx, min_count,
                                           item["at"])
+        elif kind == "mass_in_box":
+            results.setdefault(kind, {})[item.get("name", "box")] = mass_in_box(frames, times, item["box"], item["at"])
+        else:
+            results[kind] = pieces(frames, times, dx, float(item.get("min_fraction", 0.01)), item["at"])
     return results

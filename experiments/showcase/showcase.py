@@ -13,11 +13,12 @@ A showcase file (JSON) holds:
   camera: [azimuth, elevation] degrees of the surface renders (optional).
   measure: a list of measurements (experiments/showcase/measure.py), e.g. {"type": "detachment"}.
 
-Usage: python experiments/showcase/showcase.py experiments/showcase/pie_throw.json [--gpu] [--reuse]
+Usage: python experiments/showcase/showcase.py experiments/showcase/pie_throw.json [--gpu] [--reuse [--measure-only]]
 Writes to experiments/showcase/out/<name>/: the particle view (frame_###.png, <name>.mp4,
 <name>_sheet.png), the shaded surfaces (surface/frame_###.png, <name>_surface.mp4,
 <name>_surface_sheet.png), the measurements (<name>_measure.json) and <name>.md; the frames themselves
-go to frames.npz there (not committed), which --reuse renders and measures again without simulating.
+go to frames.npz there (not committed), which --reuse renders and measures again without simulating
+(--measure-only: measures only).
 """
 from __future__ import annotations
 
@@ -184,7 +185,7 @@ def _compact_png(path):
     pal.save(path, optimize=True)
 
 
-def run(path, gpu=False, out=None, reuse=False):
+def run(path, gpu=False, out=None, reuse=False, measure_only=False):
     show = load_showcase(path)
     settings = show["gpu"] if gpu else show["cpu"]
     sim = make_simulator(show, settings)
@@ -208,6 +209,12 @@ def run(path, gpu=False, out=None, reuse=False):
         np.savez(tmp, seconds=seconds, **frames)
         tmp.replace(saved)
     times = np.asarray(sim.plan.frame_times)
+    measured = measure_all(show.get("measure", []), frames, times, show["scene"], show["colliders"],
+                           float(settings["dx"]))
+    (out / f"{show['name']}_measure.json").write_text(json.dumps(measured, indent=1) + "\n")
+    if measure_only:
+        print(f"{show['name']}: wrote {out / (show['name'] + '_measure.json')}", flush=True)
+        return dict(seconds=seconds, frames=frames, sim=sim, measured=measured)
     lo, hi = np.asarray(show["scene"].domain_min), np.asarray(show["scene"].domain_max)
     lims = [((lo[a], hi[a]), (lo[b], hi[b])) for a, b in show["views"]]
     gmax = max(float(np.percentile(frames["gamma_dot"][frames["active"]], 99.5)), 1e-3)
@@ -227,9 +234,6 @@ def run(path, gpu=False, out=None, reuse=False):
     render_surface_video(traj, out / f"{show['name']}_surface.mp4", fps=10, camera=camera,
                          colliders=show["colliders"], frames_dir=out / "surface")
     render_s = time.perf_counter() - t1
-    measured = measure_all(show.get("measure", []), frames, times, show["scene"], show["colliders"],
-                           float(settings["dx"]))
-    (out / f"{show['name']}_measure.json").write_text(json.dumps(measured, indent=1) + "\n")
     n_end = int(np.sum(frames["active"][-1]))
     text = (f"# {show['name']}\n\n{show['description']}\n\nSettings ({'gpu' if gpu else 'cpu'}): "
             f"{json.dumps(settings)}; {n0} points at start, {n_end} at the end; {sim.total_substeps} substeps "
@@ -281,8 +285,11 @@ def main(argv=None):
     ap.add_argument("--gpu", action="store_true", help="use the file's 'gpu' settings (scale-up)")
     ap.add_argument("--out", help="output folder (default experiments/showcase/out/<name>)")
     ap.add_argument("--reuse", action="store_true", help="render and measure the frames.npz of an earlier run")
+    ap.add_argument("--measure-only", action="store_true", help="with --reuse: only the measurements, no renders")
     args = ap.parse_args(argv)
-    run(args.scene, args.gpu, args.out, args.reuse)
+    if args.measure_only and not args.reuse:
+        ap.error("--measure-only needs --reuse (the frames of an earlier run)")
+    run(args.scene, args.gpu, args.out, args.reuse, args.measure_only)
 
 
 if __name__ == "__main__":

@@ -86,3 +86,22 @@ def test_a_bad_measure_list_is_refused_naming_the_problem():
         M.measure_all([{"type": "peaks"}], frames, np.array([0.0]), None, (), 0.01)
     with pytest.raises(ValueError, match="'wobble' needs a 'detachment' entry before it"):
         M.measure_all([{"type": "wobble", "window": 0.2}], frames, np.array([0.0]), None, (), 0.01)
+
+
+def test_pieces_counts_separate_clumps_by_mass_and_ignores_specks():
+    rng = np.random.default_rng(3)
+    a = rng.uniform(0.0, 0.05, (600, 3))
+    b = rng.uniform(0.0, 0.03, (200, 3)) + [0.1, 0.0, 0.0]  # 3 cm from the first clump
+    speck = np.array([[0.2, 0.0, 0.0]])
+    x = np.concatenate([a, b, speck])
+    frames = {"x": x[None], "active": np.ones((1, len(x)), bool), "mass": np.ones((1, len(x)))}
+    out = M.pieces(frames, np.array([0.5]), H, 0.01, [0.5])["0.500"]
+    assert out["count"] == 2
+    assert out["fractions"] == [pytest.approx(600 / 801, abs=1e-4), pytest.approx(200 / 801, abs=1e-4)]
+
+
+def test_mass_in_box():
+    x = np.array([[0.0, 0.06, 0.0], [0.0, 0.01, 0.0], [0.05, 0.07, 0.0]])
+    frames = {"x": x[None], "active": np.ones((1, 3), bool), "mass": np.array([[2.0, 1.0, 1.0]])}
+    out = M.mass_in_box(frames, np.array([0.4]), [[-0.04, 0.04], [0.055, 0.2], [-0.04, 0.04]], [0.4])
+    assert out == {"0.400": pytest.approx(0.5)}
