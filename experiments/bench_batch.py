@@ -7,7 +7,7 @@ the reference drop, 794 particles; frames up to 0.15 s), B of them as one batche
 Jacobians of three starts: in turn (`residual_and_jacobian`, two column threads) against one
 batched program of their 12 jvp rollouts on one and on D devices.
 Writes experiments/results/bench_batch[_quick].md and .json.
-Usage: python -m experiments bench_batch [--quick] [--devices D] [--batch B]
+Usage: python -m experiments bench_batch [--quick] [--devices D] [--batch B] [--name NAME]
 """
 from __future__ import annotations
 
@@ -49,7 +49,10 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="2 rounds instead of 5")
     ap.add_argument("--devices", type=int, default=2, help="host devices of the sharded runs (default 2)")
     ap.add_argument("--batch", type=int, default=8, help="rollouts per batched residual program (default 8)")
+    ap.add_argument("--name", default="bench_batch", help="record name under experiments/results (default bench_batch)")
     args = ap.parse_args(argv)
+    if not args.name.replace("_", "").isalnum():
+        ap.error(f"--name {args.name!r}: letters, digits and '_' only (a record name under experiments/results)")
     rounds = 2 if args.quick else 5
     D = min(args.devices, len(jax.devices()))
 
@@ -69,12 +72,14 @@ def main(argv=None):
         "step, 8,192 particles": (lambda: ref(state, params), 8192 * steps),
         "fit residual, alone": (lambda: one.residual(z), n * substeps),
         f"fit residuals, batch of {args.batch}, 1 device": (lambda: one.residual_batch(Z), args.batch * n * substeps),
-        f"fit residuals, batch of {args.batch}, {D} devices": (lambda: many.residual_batch(Z), args.batch * n * substeps),
         "3 Jacobians in turn (2 column threads)": (lambda: [one.residual_and_jacobian(Z3[i]) for i in range(3)],
                                                    3 * p * n * substeps),
         "3 Jacobians batched, 1 device": (lambda: one.residual_and_jacobian_batch(Z3), 3 * p * n * substeps),
-        f"3 Jacobians batched, {D} devices": (lambda: many.residual_and_jacobian_batch(Z3), 3 * p * n * substeps),
     }
+    if D > 1:  # the sharded rows
+        cases[f"fit residuals, batch of {args.batch}, {D} devices"] = (lambda: many.residual_batch(Z),
+                                                                       args.batch * n * substeps)
+        cases[f"3 Jacobians batched, {D} devices"] = (lambda: many.residual_and_jacobian_batch(Z3), 3 * p * n * substeps)
     compile_s = {k: _timed(fn) for k, (fn, _) in cases.items()}
     times = {k: [] for k in cases}
     for r in range(rounds):
@@ -92,13 +97,15 @@ def main(argv=None):
             f"(a jvp rollout counts once).\n\n"
             + md_table(["program", "median s", "M particle-steps/s", "vs the 8,192-particle step", "first call s"], rows)
             + "\n\nThe Jacobians of three starts: batched on 1 device "
-            f"{jac_seq / med['3 Jacobians batched, 1 device']:.2f}x, on {D} devices "
-            f"{jac_seq / med[f'3 Jacobians batched, {D} devices']:.2f}x the speed of computing them in turn.\n")
-    write_md("bench_batch", args.quick, "Batched and sharded evaluation of fit-sized rollouts", body,
-             command="bench_batch" + ("" if D == 2 else f" --devices {D}"))
+            f"{jac_seq / med['3 Jacobians batched, 1 device']:.2f}x"
+            + (f", on {D} devices {jac_seq / med[f'3 Jacobians batched, {D} devices']:.2f}x" if D > 1 else "")
+            + " the speed of computing them in turn.\n")
+    write_md(args.name, args.quick, "Batched and sharded evaluation of fit-sized rollouts", body,
+             command="bench_batch" + ("" if D == 2 else f" --devices {D}")
+             + ("" if args.name == "bench_batch" else f" --name {args.name}"))
     record = dict(machine=machine_line(), devices=D, particles=n, substeps=substeps, rounds=rounds,
                   median_s=med, rate=rate, compile_s=compile_s, times=times)
-    with atomic_output(out_path("bench_batch", "json", args.quick)) as tmp:
+    with atomic_output(out_path(args.name, "json", args.quick)) as tmp:
         with open(tmp, "w") as fh:
             json.dump(record, fh, indent=1)
     return 0

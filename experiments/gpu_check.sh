@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The accelerator check of docs/performance.md, run from the repository root on a GPU machine with JAX:
 # the step and gradient benchmarks (experiments/bench_gpu.py), then default fits of the reference drop
-# (2D, float64 and float32) and hanging plate (3D), each timed. Every stage shares one wall-clock budget
+# (2D, float64 and float32) and hanging plate (3D), each timed, then bench_batch.py on the device. Every stage shares one wall-clock budget
 # so the script ends inside it; outputs (at most 8 files) go to OUTDIR.
 # Usage: experiments/gpu_check.sh OUTDIR [BUDGET_S, default 560]
 set -u
@@ -47,5 +47,8 @@ stage fit_plate_3d 150 "$py" -m jaxfoam fit "$data/hanging_plate_3d_set0.h5" --o
   --log /tmp/fit_plate_3d.fitlog.h5 --no-plots
 stage fit_drop_2d_f32 100 "$py" -m jaxfoam fit "$data/drop_2d_set0.h5" --out "$out/fit_drop_2d_f32.json" \
   --log /tmp/fit_drop_2d_f32.fitlog.h5 --no-plots --dtype float32
+# Batched fit-sized rollouts against the 8,192-particle step on this device (bench_batch.py).
+stage batch 120 "$py" -m experiments bench_batch --devices 1 --quick --name bench_batch_gpu \
+  && cp experiments/results/bench_batch_gpu_quick.json "$out/batch.json"
 rm -f "$out"/*.md
 echo "== done, $(( $(date +%s) - t0 )) s" | tee -a "$log"
