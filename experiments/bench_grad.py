@@ -227,7 +227,7 @@ def _table(time_runs, mem_rows):
                 text = (f"- dx {dx:g} m, {m}: CPU time {cratio:.2f}x forward, wall {wratio:.2f}x, medians of "
                         f"{len(runs)} run(s) (goal <= {tg:g}x: "
                         f"{'met' if max(cratio, wratio) <= tg else ('met on one measure' if min(cratio, wratio) <= tg else 'missed')}"
-                        f"{'' if len(runs) == 1 else f'; in every run on both measures' if worst <= tg else f'; the worst run {worst:.2f}x'}"
+                        f"{'' if len(runs) == 1 else '; in every run on both measures' if worst <= tg else f'; the worst run {worst:.2f}x'}"
                         f"; CPU ratio per run {', '.join(f'{c:.2f}' for c, _ in per_run)})")
                 if mg is not None:
                     text += (f"; peak RSS in the call {hm:.2f}x forward's, XLA working buffers {wm:.1f}x "

@@ -25,7 +25,6 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-import numpy as np  # noqa: E402
 
 from experiments._common import machine_line, md_table, out_path, parse_args, write_md  # noqa: E402
 from fitting import FitSettings, calibrate, synthesize  # noqa: E402

@@ -150,10 +150,10 @@ def report(quick: bool) -> None:
                 f"Fits {', '.join(f'{c} / {p}' for c, p in sorted(FROM_REFERENCE))} instead start at the "
                 f"reference fit's optimum with at most {REFINE_ITERS} iterations (2.25x the particles per "
                 f"iteration; from there they only move as far as the particle count moves the optimum). "
-                if FROM_REFERENCE & set(fits) else "") + f"`loss@start` is the loss of "
-            f"the start on that grid (the truth, or the reference optimum). All fits ran 2-3 at a time on "
-            f"the shared 2-core machine (load average about 6), so wall times are inflated and compare only "
-            f"roughly.\n"]
+                if FROM_REFERENCE & set(fits) else "") + "`loss@start` is the loss of "
+            "the start on that grid (the truth, or the reference optimum). All fits ran 2-3 at a time on "
+            "the shared 2-core machine (load average about 6), so wall times are inflated and compare only "
+            "roughly.\n"]
     for s, dur, frames, dcells in scenes:
         body.append(f"## {s}\n\nData: {dcells} cells across the largest extent, {dur} s, {frames} frames.\n")
         done = [(c, p) for c, p in fits if (s, c, p) in recs]

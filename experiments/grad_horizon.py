@@ -129,7 +129,7 @@ def main(argv=None):
                      f"\n\n")
         header = ["t s"]
         for label in res["wrt"]:
-            header += [f"d/d {label} (AD)", f"AD vs FD", f"FD vs FD"]
+            header += [f"d/d {label} (AD)", "AD vs FD", "FD vs FD"]
         rows = []
         for k, t in enumerate(res["times"]):
             row = [float(t)]

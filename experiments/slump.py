@@ -41,7 +41,6 @@ Usage: python -m experiments slump [--quick]. Writes experiments/results/slump[_
 """
 from __future__ import annotations
 
-import functools
 import math
 import warnings
 
@@ -106,7 +105,6 @@ def slump_scene(dim: int, floor: str = "slip"):
 
 def initial_state(scene, dx):
     """Particles of the column (the 3D cylinder is the ellipse shape cut at y = H)."""
-    dim = scene.dim
     pts, vol = jaxfoam.sample_particles(scene, dx, None, seed=0)
     pts = pts[pts[:, 1] <= HEIGHT]
     n = len(pts)
