@@ -8,7 +8,7 @@ import numpy as np
 from ._grid import Grid, _flat_index, _offset_index, _offsets, _stencil
 from ._scene import Scene
 from ._xla_cpu import Tuning, tuning_for
-from ._xla_cpu.transfers import _IN_BOUNDS
+from ._xla_cpu.fold import IN_BOUNDS as _IN_BOUNDS
 
 
 # max(x, 0), min(x, 0) and clipping as selects (NaN passes through, as with jnp.maximum). The derivative

@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 
 from .._grid import Grid, _offset_index, _offsets, _stencil, _stencil_derivs, _strides
-from .fold import IN_BOUNDS as _IN_BOUNDS, gather_folded, gather_plain, scatter_folded, scatter_plain
+from .fold import gather_folded, gather_plain, scatter_folded, scatter_plain
 
 def _window_payload(grid: Grid, fx, w, mvA, A, mass=None, tangent=None):
     """The APIC payload W_ip (mv_p + A_p (x_i - x_p)) [, W_ip m_p] in the windowed scatter's order:
