@@ -1,9 +1,9 @@
 """Shaded pictures of a frame's surface, in numpy: a z-buffered triangle rasterizer for 3D, an
-embossed fill of the outline for 2D; the floor and the plates drawn with the foam.
+embossed fill of the outline for 2D; the floor, the plates and any SDF colliders drawn with the foam.
 
 3D: an orthographic camera at (azimuth, elevation) looks at the region the foam and the plates occupy;
-the foam mesh (jaxfoam._surface), the floor (a checkered plane, for depth) and the plates (boxes) are
-rasterized at SUPERSAMPLE times the resolution with a depth buffer, shaded with Lambert's law plus
+the foam mesh (jaxfoam._surface), the floor (a checkered plane, for depth), the plates (boxes) and the
+colliders (marching cubes of their phi over the view's box) are rasterized at SUPERSAMPLE times the resolution with a depth buffer, shaded with Lambert's law plus
 an ambient term, with shadows from a second depth buffer seen from the light, then averaged down.
 2D: the volume fraction's ISO_LEVEL line bounds the fill (anti-aliased over one pixel); the fill is
 lit as a relief whose height is the volume fraction, so its rim is shaded like a rounded edge.
