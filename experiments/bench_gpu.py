@@ -26,7 +26,6 @@ import jax
 
 jax.config.update("jax_enable_x64", True)  # float64 cases; jaxfoam leaves the config alone
 import jax.numpy as jnp
-import numpy as np
 
 from experiments import bench_grad, bench_step
 
@@ -67,17 +66,8 @@ def step_case(dim, n, cells, dtype, steps, repeats, variant):
     """One bench_step case; variant: 'backend' (tuning_for()), 'sorted' (that + sort_by_cell), 'xla_cpu'."""
     from jaxfoam._xla_cpu import XLA_CPU, tuning_for
     scene, state, params, grid, dt = bench_step.make_case(dim, n, cells, dtype)
-    model = bench_step.jf.Model(scene=scene, dt=dt, dt_cfl=dt, grid=grid, substeps=steps,
-                                dtype=jnp.dtype(dtype).name)
     tuning = {"backend": tuning_for(), "sorted": tuning_for().replace(sort_by_cell=True), "xla_cpu": XLA_CPU}[variant]
-    model = model.replace(tuning=tuning)
-    times = np.asarray([steps * dt])
-
-    @jax.jit
-    def rollout(state, params):
-        final, _, _ = bench_step.jf.rollout(model, state, params, times, observe=bench_step._observe_x,
-                                            adjoint=bench_step.jf.Autodiff())
-        return final
+    rollout = bench_step.make_rollout(scene, grid, dt, steps, None, dtype, tuning=tuning)
     out, compile_s, runs = bench_step.time_runs(rollout, state, params, repeats)
     finite = bool(jnp.all(jnp.isfinite(out.x)))
     med = statistics.median(runs)
@@ -117,8 +107,8 @@ def report(path):
                   "|---|---|---|---|---|---|---|---|---|"]
     for r in steps:
         lines.append(f"| {r['dim']}D | {r['n']:,} | {r['cells']}^{r['dim']} | {r['dtype']} | {r['variant']} | {r['steps']} | "
-                     f"{r['rate'] / 1e6:.1f} | {r['best_rate'] / 1e6:.1f} | {r['compile_s']:.1f} |"
-                     + ("" if r["finite"] else " NON-FINITE |"))
+                     f"{r['rate'] / 1e6:.1f} | {r['best_rate'] / 1e6:.1f} | {r['compile_s']:.1f}"
+                     + (" |" if r["finite"] else " (NON-FINITE) |"))
     grads = [r for r in rows if r["kind"] == "grad"]
     if grads:
         lines += ["", "## Gradients (bench_grad.py's hanging plate, float64)", "",

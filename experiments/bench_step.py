@@ -51,10 +51,11 @@ def _observe_x(state, params):
     return state.x
 
 
-def make_rollout(scene, grid, dt, steps, sort, dtype):
-    """One frame of `steps` substeps of dt s through `jaxfoam.rollout` (forward only), jit-compiled."""
+def make_rollout(scene, grid, dt, steps, sort, dtype, tuning=None):
+    """One frame of `steps` substeps of dt s through `jaxfoam.rollout` (forward only), jit-compiled; with
+    the backend's tuning and `sort` as its sort_by_cell, or `tuning` as given."""
     model = jf.Model(scene=scene, dt=dt, dt_cfl=dt, grid=grid, substeps=steps, dtype=jnp.dtype(dtype).name)
-    model = model.replace(tuning=model.tuning.replace(sort_by_cell=sort))
+    model = model.replace(tuning=tuning or model.tuning.replace(sort_by_cell=sort))
     times = np.asarray([steps * dt])
 
     @jax.jit
