@@ -119,6 +119,43 @@ def floor_touch(x, vol0, active, grid: Grid, scene: Scene, idx0=None) -> jax.Arr
     return lowest <= scene.floor_y + FLOOR_TOUCH * grid.dx
 
 
+def _next_out(field, axis: int, side: int):
+    """field (*grid shape, d) shifted so each node holds its neighbour one cell along `side` (+1 or -1) of
+    `axis` (the last layer repeats itself)."""
+    n = field.shape[axis]
+    if side > 0:
+        idx = np.minimum(np.arange(n) + 1, n - 1)
+    else:
+        idx = np.maximum(np.arange(n) - 1, 0)
+    return jnp.take(field, idx, axis=axis)
+
+
+def _face_grip(v, rel, half_size, vp, grid: Grid):
+    """Grip "face" outside a sticky box (`Plate.grip`): nodes 0 < d < dx outside it (Chebyshev distance d,
+    m) take vp + (v_next - vp) d / (d + dx), v_next the node one cell further out along the axis of the
+    largest excess, so the velocity profile reaches vp at the face. v (G, d) m/s, rel (G, d) m node minus
+    plate centre, half_size (d,) m, vp (d,) m/s."""
+    d = v.shape[-1]
+    excess = jnp.abs(rel) - half_size[None, :]
+    dist = jnp.max(_pos_part(excess), axis=-1)
+    axis = jnp.argmax(excess, axis=-1)
+    band = (dist > 0) & (dist < grid.dx)
+    field = v.reshape(tuple(grid.shape) + (d,))
+    nxt = jnp.zeros_like(v)
+    for k in range(d):
+        for side in (1, -1):
+            pick = (axis == k) & ((rel[:, k] > 0) if side > 0 else (rel[:, k] <= 0))
+            nxt = jnp.where(pick[:, None], _next_out(field, k, side).reshape(-1, d), nxt)
+    frac = dist / (dist + grid.dx)
+    target = vp[None, :] + frac[:, None] * (nxt - vp[None, :])
+    # Along the face normal the band only pushes (the plate approaching): it never pulls material the
+    # nodes inside the plate do not hold.
+    normal = jax.nn.one_hot(axis, d, dtype=v.dtype) * jnp.sign(jnp.take_along_axis(rel, axis[:, None], -1))
+    push = sum((target[:, k] - v[:, k]) * normal[:, k] for k in range(d))
+    target = target - _neg_part(push)[:, None] * normal
+    return jnp.where(band[:, None], target, v)
+
+
 def _wall_rule(vk, low: bool):
     """A slip wall on velocity component k at a node on or beyond it: the outward part removed."""
     return _pos_part(vk) if low else _neg_part(vk)
@@ -135,8 +172,9 @@ def apply_colliders(v, node_x, scene: Scene, t, colliders=(), grid_m=None, dt=No
                     grid: Grid | None = None, touch=None, tuning: Tuning | None = None) -> jax.Array:
     """Boundary conditions on grid velocities v (G, d) m/s at nodes node_x (G, d) m, time t s.
 
-    - plates: nodes inside a plate take its velocity (sticky) or lose the approaching normal
-      component relative to it (slip);
+    - plates: nodes inside a plate take its velocity (sticky; with grip "face" those within a cell
+      outside it take the velocity interpolated between the face and the next node out, `Plate`) or
+      lose the approaching normal component relative to it (slip);
     - floor (y <= floor_y): no slip when sticky, else Coulomb friction with the scene coefficient
       on approaching nodes; with particle contact (scene.floor_contact == "particle") only where
       `touch` (G,) bool (`floor_touch`) is true, and the bottom wall then acts no higher than half
@@ -158,7 +196,11 @@ def apply_colliders(v, node_x, scene: Scene, t, colliders=(), grid_m=None, dt=No
         c, vp = tuning.buffer("plate_motion", (plate.position(t), plate.velocity(t)), t)
         rel = node_x - c[None, :]
         inside = jnp.all(jnp.abs(rel) <= plate.half_size[None, :], axis=-1)
-        if plate.sticky:
+        if plate.sticky and plate.grip == "face":
+            if grid is None:
+                raise ValueError("a plate with grip 'face' needs the grid (apply_colliders(..., grid=...))")
+            v = jnp.where(inside[:, None], vp[None, :], _face_grip(v, rel, plate.half_size, vp, grid))
+        elif plate.sticky:
             v = jnp.where(inside[:, None], vp[None, :], v)
         else:
             gap = plate.half_size[None, :] - jnp.abs(rel)  # distance to each face pair

@@ -18,7 +18,11 @@ KINDS = ("hanging_plate", "drop", "squeeze")
 SCENE_KEYS = {"kind", "dim", "gravity", "density", "kappa", "domain", "floor", "plate", "plates",
               "initial_shape", "initial_velocity", "name", "notes"}
 REQUIRED_KEYS = ("kind", "dim", "density", "kappa", "domain", "initial_shape")
-PLATE_KEYS = {"center", "half_size", "motion", "sticky"}
+PLATE_KEYS = {"center", "half_size", "motion", "sticky", "grip"}
+# How a sticky plate grips (docs/data.md): "nodes", the grid nodes inside it take its velocity (the no-slip
+# wall then sits near the lowest node row inside the face, 0-1 cell in); "face", the nodes within a cell
+# outside it also take the velocity interpolated between the face and the next node out.
+PLATE_GRIPS = ("nodes", "face")
 MOTION_KEYS = {
     "none": {"type"},
     "sinusoid": {"type", "axis", "amplitude", "frequency", "phase", "ramp_time"},
@@ -58,7 +62,11 @@ class Plate:
     Data leaves (differentiable): center (d,) m, half_size (d,) m, axis (d,) unit direction,
     amplitude m, frequency Hz, phase rad, ramp_time s, sample_times (k,) s, sample_positions (k, d) m.
     Static: motion ("none" | "sinusoid" | "samples"), sticky (nodes inside take the plate velocity;
-    otherwise only the approaching normal component is removed).
+    otherwise only the approaching normal component is removed), grip (a sticky plate's reach,
+    PLATE_GRIPS: "nodes" inside it only; "face": also each node a distance 0 < d < dx outside the box
+    (Chebyshev distance, m), which takes v_plate + (v_next - v_plate) d / (d + dx), v_next the velocity
+    of the node one cell further out along the nearest face's normal: the linear profile that meets the
+    plate's velocity at its face).
     Centre at time t: center + axis A r(t) sin(2 pi f t + phase), r(t) = min(1, t / ramp_time),
     or the samples interpolated linearly (held constant outside their time range).
     """
@@ -74,6 +82,7 @@ class Plate:
     sample_positions: jax.Array
     motion: str = dataclasses.field(metadata=dict(static=True), default="none")
     sticky: bool = dataclasses.field(metadata=dict(static=True), default=True)
+    grip: str = dataclasses.field(metadata=dict(static=True), default="nodes")
 
     def position(self, t):
         """Plate centre at time t (s), m, (d,)."""
@@ -199,6 +208,9 @@ def _parse_plate(p, field, d, dtype):
     sticky = p.get("sticky", True)
     if not isinstance(sticky, bool):
         _err(f"{field}.sticky", f"expected true or false, got {sticky!r}")
+    grip = p.get("grip", "nodes")
+    if grip not in PLATE_GRIPS:
+        _err(f"{field}.grip", f"expected one of {list(PLATE_GRIPS)}, got {grip!r}")
     motion = p.get("motion", {"type": "none"})
     if not isinstance(motion, dict) or motion.get("type") not in MOTION_KEYS:
         _err(f"{field}.motion.type", f"expected one of {sorted(MOTION_KEYS)}, got "
@@ -236,7 +248,7 @@ def _parse_plate(p, field, d, dtype):
     a = lambda v: jnp.asarray(v, dtype)
     return Plate(center=a(center), half_size=a(half), axis=a(axis), amplitude=a(amp), frequency=a(freq),
                  phase=a(phase), ramp_time=a(ramp), sample_times=a(times), sample_positions=a(positions),
-                 motion=mtype, sticky=sticky)
+                 motion=mtype, sticky=sticky, grip=grip)
 
 
 def load_scene(scene: str | os.PathLike | dict, dtype=jnp.float64) -> Scene:
