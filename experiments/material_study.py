@@ -17,9 +17,11 @@ Every fit: dx FIT_DX, 2 starts of up to 15 LM iterations, the discretization che
 intervals combine it with the statistical ones; both are recorded). Each step's record is kept in
 experiments/results/material_study/ and a rerun resumes after the last finished step.
 
-Usage: python -m experiments material_study [--material K ...] [--stop-after STEP] [--grid 1cm|default] [--report]
+Usage: python -m experiments material_study [--material K ...] [--stop-after STEP] [--grid 1cm|default]
+                                            [--design-grid 1cm|default] [--report]
 Writes experiments/results/material_study.md (--grid default: material_study_default.md, the fitter's
-default grid, records *_default). SI units.
+default grid, records *_default). With --design-grid G (another grid) step (iii) fits, on --grid, the
+recording that G's design chose (records *_designed_joint<tag>_design<G>). SI units.
 """
 from __future__ import annotations
 
@@ -58,6 +60,17 @@ class Grid:
     tag: str
     settings: FitSettings
     page: str
+    design_from: str | None = None  # another grid's name whose design (and designed recording) to fit
+
+    @property
+    def design(self) -> "Grid":
+        """The grid whose design records and designed recording this grid's designed joint fit uses."""
+        return self if self.design_from is None else GRIDS[self.design_from]
+
+    @property
+    def designed_tag(self) -> str:
+        """The designed joint fit's record suffix."""
+        return self.tag + ("" if self.design_from is None else f"_design{self.design_from}")
 
 
 GRIDS = {"1cm": Grid("", SETTINGS, NAME),
@@ -124,8 +137,11 @@ def run_material(k: int, stop_after: str, grid: Grid = GRIDS["1cm"], say=print) 
         say(f"mat{k} joint: {_short(res.params)} in {time.perf_counter() - t:.0f} s")
     if stop_after == "joint":
         return
-    out = record_path(k, "design", grid=grid)
-    scene_file = RECORDS / f"mat{k}_designed_scene{grid.tag}.json"
+    out = record_path(k, "design", grid=grid.design)
+    scene_file = RECORDS / f"mat{k}_designed_scene{grid.design.tag}.json"
+    if not out.exists() and grid.design_from is not None:
+        raise SystemExit(f"material {k}: no design on the {grid.design_from} grid ({out.name}); run "
+                         f"python -m experiments material_study --material {k} --grid {grid.design_from} first")
     if not out.exists():
         guess = inside_bounds({n: _load(record_path(k, "joint", grid=grid))["params"][n] for n in NAMES})
         variables = [Variable("plate.motion.amplitude", AMPLITUDES), Variable("plate.motion.frequency", FREQUENCIES)]
@@ -144,7 +160,7 @@ def run_material(k: int, stop_after: str, grid: Grid = GRIDS["1cm"], say=print) 
                         ranking=[dict(values=c["values"], half_width=c["half_width"], within=c["within"])
                                  for c in res.candidates], measured=C.machine_line()))
         say(f"mat{k} design: best {best['values']} of {len(res.candidates)} in {wall:.0f} s")
-    out_m = record_path(k, "design_misfit", grid=grid)
+    out_m = record_path(k, "design_misfit", grid=grid.design)
     if not out_m.exists():  # the best candidate predicted once more with the made recordings' misfit
         rec = _load(out)
         scene, kw = _design_inputs(k, grid, "with")
@@ -156,7 +172,7 @@ def run_material(k: int, stop_after: str, grid: Grid = GRIDS["1cm"], say=print) 
         say(f"mat{k} design with the made recordings' misfit: {_short(best['half_width'])}")
     if stop_after == "design":
         return
-    designed = data_path(KINDS[0], k, designed=True, tag=grid.tag)
+    designed = data_path(KINDS[0], k, designed=True, tag=grid.design.tag)
     if not designed.exists():
         rec = _load(out)["recording"]
         case = G.Case(KINDS[0], float(rec["duration"]), int(rec["frames"]), 4.0, 1, 0, path=str(scene_file))
@@ -164,7 +180,7 @@ def run_material(k: int, stop_after: str, grid: Grid = GRIDS["1cm"], say=print) 
                    progress=lambda m: None)
         (G.MATERIALS_DIR / "README.md").write_text(G.MATERIALS_README_HEAD + G.index_table(G.MATERIALS_DIR))
         say(f"mat{k}: made {designed.name}")
-    out = record_path(k, "designed_joint", grid=grid)
+    out = RECORDS / f"mat{k}_designed_joint{grid.designed_tag}.json"
     if not out.exists():
         files = [designed] + [data_path(kind, k) for kind in KINDS[1:]]
         t = time.perf_counter()
@@ -239,7 +255,8 @@ def report(materials, grid: Grid = GRIDS["1cm"]) -> Path:
     for k in materials:
         truth = G.materials()[k]
         singles = {kind: _load(record_path(k, "single", kind, grid=grid)) for kind in KINDS}
-        joint, des, dj = (_load(record_path(k, s, grid=grid)) for s in ("joint", "design", "designed_joint"))
+        joint, des = (_load(record_path(k, s, grid=g)) for s, g in (("joint", grid), ("design", grid.design)))
+        dj = _load(RECORDS / f"mat{k}_designed_joint{grid.designed_tag}.json")
         body.append(f"## Material {k}: mu {truth['mu']:g} Pa, sigma_y {truth['sigma_y']:g} Pa, "
                     f"eta {truth['eta']:g} Pa s^m, m {truth['m']:g}\n")
         cols = [(kind.replace('_2d', '') + " alone", singles[kind]) for kind in KINDS] + [
@@ -282,8 +299,10 @@ def report(materials, grid: Grid = GRIDS["1cm"]) -> Path:
                 f"{n} " + " / ".join(f"{100 * v:.0f}%" for v in joint["information_share"][n]) for n in NAMES)
                 + ". Noise scales " + ", ".join(f"{r['scale']:.3g}" for r in joint["recordings"]) + ".\n")
         if des:
-            body.append(f"Design from the joint fit's values: {des['candidates']} candidates in {des['wall']:.0f} s; "
-                        f"best {des['values']}. {des['advice']}\n")
+            where = ("" if grid.design_from is None else
+                     f" on the {grid.design_from} grid (its joint fit's values, its fits' predictions)")
+            body.append(f"Design from the joint fit's values{where}: {des['candidates']} candidates in "
+                        f"{des['wall']:.0f} s; best {des['values']}. {des['advice']}\n")
         if dj and des:
             ok = all(within(n, dj["params"][n], truth[n]) and dj["interval"][n][0] <= truth[n] <= dj["interval"][n][1]
                      for n in NAMES)
@@ -295,7 +314,7 @@ def report(materials, grid: Grid = GRIDS["1cm"]) -> Path:
                 informative = not covers_bounds(n, dj["interval_statistical"][n], st)
                 if informative:
                     goals["pred"].append(ach / pt if pt > 0 and math.isfinite(pt) else math.inf)
-                dm = _load(record_path(k, "design_misfit", grid=grid))
+                dm = _load(record_path(k, "design_misfit", grid=grid.design))
                 mis = [_fmt_hw(n, dm["predicted_guess"][n]), _fmt_hw(n, dm["predicted_worst"][n]),
                        f"{ach / dm['predicted_worst'][n]:.2f}"] if dm else ["-", "-", "-"]
                 if dm and informative:
@@ -329,7 +348,8 @@ def report(materials, grid: Grid = GRIDS["1cm"]) -> Path:
                        f"{inside} of {len(goals['pred_misfit'])}.")
     text = "\n".join(summary) + "\n\n" + "\n".join(body)
     return C.write_md(grid.page, False, "One foam in three recordings: single, joint and designed fits on reference data",
-                      text, command=NAME + ("" if grid.page == NAME else " --grid default"))
+                      text, command=NAME + ("" if grid.page == NAME else " --grid default")
+                      + ("" if grid.design_from is None else f" --design-grid {grid.design_from}"))
 
 
 def main(argv=None) -> int:
@@ -338,9 +358,13 @@ def main(argv=None) -> int:
     ap.add_argument("--stop-after", choices=STEPS, default=STEPS[-1])
     ap.add_argument("--grid", choices=sorted(GRIDS), default="1cm",
                     help="the fits' grid: dx 1 cm, or the fitter's default (records *_default, page material_study_default.md)")
+    ap.add_argument("--design-grid", choices=sorted(GRIDS), default=None,
+                    help="fit the designed recording of this grid's design (default: design on --grid itself)")
     ap.add_argument("--report", action="store_true", help="rebuild the page from the records, no fits")
     args = ap.parse_args(argv)
     grid = GRIDS[args.grid]
+    if args.design_grid is not None and args.design_grid != args.grid:
+        grid = dataclasses.replace(grid, design_from=args.design_grid)
     mats = args.material if args.material is not None else list(range(G.N_MATERIALS))
     for k in mats:
         if not 0 <= k < G.N_MATERIALS:

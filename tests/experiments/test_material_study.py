@@ -67,3 +67,28 @@ def test_a_fit_on_a_bound_becomes_a_guess_inside_it():
     assert g["m"] == pytest.approx(lo + S.GUESS_MARGIN * (hi - lo)) and g["mu"] == 210.0 and g["eta"] == 15.2
     mlo, mhi = S.SETTINGS.bounds_of("mu")
     assert S.inside_bounds({"mu": mhi})["mu"] == pytest.approx(mhi * (mlo / mhi) ** S.GUESS_MARGIN)
+
+
+def test_a_grid_fits_another_grids_design_under_its_own_record(tmp_path, monkeypatch):
+    """--design-grid: the default grid's designed joint fit reads the 1 cm grid's design records and writes
+    its own record (mat<K>_designed_joint_default_design1cm); the page says where the design was ranked."""
+    import dataclasses
+    monkeypatch.setattr(S, "RECORDS", tmp_path / "records")
+    monkeypatch.setattr(C, "RESULTS", tmp_path)
+    grid = dataclasses.replace(S.GRIDS["default"], design_from="1cm")
+    assert grid.design is S.GRIDS["1cm"] and grid.designed_tag == "_default_design1cm"
+    assert S.GRIDS["default"].design is S.GRIDS["default"] and S.GRIDS["default"].designed_tag == "_default"
+    truth = G.materials()[0]
+    for kind in S.KINDS:
+        S._save(S.record_path(0, "single", kind, grid=grid), _fit(truth, 0.9))
+    S._save(S.record_path(0, "joint", grid=grid), _fit(truth, 0.25))
+    with pytest.raises(SystemExit, match="no design on the 1cm grid"):
+        S.run_material(0, "designed_joint", grid, say=lambda m: None)
+    S._save(S.record_path(0, "design", grid=S.GRIDS["1cm"]),
+            dict(candidates=20, wall=100.0, values={"plate.motion.amplitude": 0.02}, advice="Film 1 s.",
+                 predicted_guess={n: 0.05 for n in S.NAMES}, predicted_worst={n: 0.06 for n in S.NAMES},
+                 predicted_truth={n: 0.1 for n in S.NAMES}))
+    S._save(S.RECORDS / "mat0_designed_joint_default_design1cm.json", _fit(truth, 0.2, shift=1.05, stat=0.04))
+    page = S.report([0], grid).read_text()
+    assert "on the 1cm grid" in page and "all four parameters within tolerance with the truth inside: 1 of 1" in page
+    assert "--design-grid 1cm" in page
