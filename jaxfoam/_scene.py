@@ -257,7 +257,8 @@ def load_scene(scene: str | os.PathLike | dict, dtype=jnp.float64) -> Scene:
     Accepted keys: kind (hanging_plate | drop | squeeze), dim (2 | 3), gravity (d numbers, m/s^2,
     default [0, -9.81(, 0)]), density (kg/m^3 > 0), kappa (Pa > 0), domain {min, max} (m), floor
     {y (m), friction (>= 0 or "sticky"), contact ("grid" | "particle", default "grid")} (optional),
-    plate (one plate) or plates (a list),
+    plate (one plate) or plates (a list), each {center, half_size (m), motion, sticky (default true),
+    grip ("nodes" | "face", default "nodes"; `Plate`)},
     initial_shape (first_mask | box | ellipse), initial_velocity (d numbers, m/s, optional),
     name, notes (free text). A hanging_plate scene needs exactly one plate, a squeeze scene at least one.
     Raises SceneError (a ValueError) naming the offending field.
