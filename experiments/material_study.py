@@ -61,6 +61,8 @@ class Grid:
     settings: FitSettings
     page: str
     design_from: str | None = None  # another grid's name whose design (and designed recording) to fit
+    design_check: bool = False      # rank the design with the fit's discretization check predicted
+    guess_tag: str | None = None    # the tag of the joint fit whose values are the design's guess (None: own)
 
     @property
     def design(self) -> "Grid":
@@ -74,7 +76,9 @@ class Grid:
 
 
 GRIDS = {"1cm": Grid("", SETTINGS, NAME),
-         "default": Grid("_default", dataclasses.replace(SETTINGS, dx=None), NAME + "_default")}
+         "default": Grid("_default", dataclasses.replace(SETTINGS, dx=None), NAME + "_default"),
+         # a design source only (--design-grid): the 1 cm design from the 1 cm joint fit, ranked with dx_check
+         "1cm_check": Grid("_check", SETTINGS, NAME + "_check", design_check=True, guess_tag="")}
 AMPLITUDES = (0.005, 0.01, 0.02, 0.03)   # m
 FREQUENCIES = (1.0, 2.0, 3.0, 5.0, 8.0)  # Hz
 DESIGN_DURATION, DESIGN_FPS, DESIGN_POINTS = 1.0, 15.0, 3
@@ -137,42 +141,47 @@ def run_material(k: int, stop_after: str, grid: Grid = GRIDS["1cm"], say=print) 
         say(f"mat{k} joint: {_short(res.params)} in {time.perf_counter() - t:.0f} s")
     if stop_after == "joint":
         return
-    out = record_path(k, "design", grid=grid.design)
-    scene_file = RECORDS / f"mat{k}_designed_scene{grid.design.tag}.json"
-    if not out.exists() and grid.design_from is not None:
-        raise SystemExit(f"material {k}: no design on the {grid.design_from} grid ({out.name}); run "
-                         f"python -m experiments material_study --material {k} --grid {grid.design_from} first")
+    dg = grid.design
+    out = record_path(k, "design", grid=dg)
+    scene_file = RECORDS / f"mat{k}_designed_scene{dg.tag}.json"
     if not out.exists():
-        guess = inside_bounds({n: _load(record_path(k, "joint", grid=grid))["params"][n] for n in NAMES})
+        source = RECORDS / f"mat{k}_joint{dg.tag if dg.guess_tag is None else dg.guess_tag}.json"
+        if not source.exists():
+            raise SystemExit(f"material {k}: the design's guess needs the joint fit {source.name}; run its grid's "
+                             f"study first")
+        guess = inside_bounds({n: _load(source)["params"][n] for n in NAMES})
         variables = [Variable("plate.motion.amplitude", AMPLITUDES), Variable("plate.motion.frequency", FREQUENCIES)]
-        scene, kw = _design_inputs(k, grid, "render")
+        scene, kw = _design_inputs(k, dg, "render")
         t = time.perf_counter()
-        res = design(scene, guess, variables, points=DESIGN_POINTS, **kw)
+        res = design(scene, guess, variables, points=DESIGN_POINTS, dx_check=dg.design_check, **kw)
         wall = time.perf_counter() - t
         best = res.best
         at_truth = design(scene, truth, [Variable(n, (v,)) for n, v in best["values"].items()],
-                          points=1, **kw).best
+                          points=1, dx_check=dg.design_check, **kw).best
         res.write_scene(scene_file)
         _save(out, dict(guess=guess, wall=wall, candidates=len(res.candidates), values=best["values"],
                         recording=best["recording"], predicted_guess=half_widths(best["predicted"][0], guess),
-                        predicted_worst=best["half_width"], predicted_truth=at_truth["half_width"],
+                        predicted_worst=best["half_width"],
+                        predicted_truth=half_widths(at_truth["predicted"][0], truth),
+                        **({"predicted_reported_truth": half_widths(at_truth["predicted_reported"][0], truth),
+                            "numerical_error_z": best["numerical_error_z"]} if dg.design_check else {}),
                         with_only=res.with_only, advice=res.advice,
                         ranking=[dict(values=c["values"], half_width=c["half_width"], within=c["within"])
                                  for c in res.candidates], measured=C.machine_line()))
         say(f"mat{k} design: best {best['values']} of {len(res.candidates)} in {wall:.0f} s")
-    out_m = record_path(k, "design_misfit", grid=grid.design)
+    out_m = record_path(k, "design_misfit", grid=dg)
     if not out_m.exists():  # the best candidate predicted once more with the made recordings' misfit
         rec = _load(out)
-        scene, kw = _design_inputs(k, grid, "with")
+        scene, kw = _design_inputs(k, dg, "with")
         one = [Variable(n, (v,)) for n, v in rec["values"].items()]
         t = time.perf_counter()
-        best = design(scene, rec["guess"], one, points=DESIGN_POINTS, **kw).best
+        best = design(scene, rec["guess"], one, points=DESIGN_POINTS, dx_check=dg.design_check, **kw).best
         _save(out_m, dict(predicted_guess=half_widths(best["predicted"][0], rec["guess"]),
                           predicted_worst=best["half_width"], wall=time.perf_counter() - t, measured=C.machine_line()))
         say(f"mat{k} design with the made recordings' misfit: {_short(best['half_width'])}")
     if stop_after == "design":
         return
-    designed = data_path(KINDS[0], k, designed=True, tag=grid.design.tag)
+    designed = data_path(KINDS[0], k, designed=True, tag=dg.tag)
     if not designed.exists():
         rec = _load(out)["recording"]
         case = G.Case(KINDS[0], float(rec["duration"]), int(rec["frames"]), 4.0, 1, 0, path=str(scene_file))

@@ -449,6 +449,9 @@ def add_design_parser(subparsers) -> argparse.ArgumentParser:
                     help="the predicted recording's misfit: the renderer's noise, or at least that of the --with "
                          "recordings at the guess (model error like theirs); auto: with when --with is given "
                          "(default auto)")
+    ap.add_argument("--dx-check", action="store_true",
+                    help="predict the intervals a fit reports: add the discretization check's numerical error, "
+                         "predicted at the guess from one more Jacobian per recording on a grid 0.71x finer")
     ap.add_argument("--duration", type=positive_float, default=DEFAULT_DURATION,
                     help=f"recorded time, s, unless varied (default {DEFAULT_DURATION:g})")
     ap.add_argument("--fps", type=positive_float, default=DEFAULT_FPS,
@@ -498,7 +501,7 @@ def run_design(args) -> int:
                             points=args.points, spread=args.spread, robust=args.robust, duration=args.duration,
                             fps=args.fps, pixel_size=args.pixel_size, progress=lambda m: print(m, flush=True),
                             log=log, resume=args.resume, sampling=args.sampling,
-                            misfit=args.misfit)
+                            misfit=args.misfit, dx_check=args.dx_check)
     except KeyboardInterrupt as exc:
         sys.stderr.write(f"\njaxfoam design: {'terminated' if isinstance(exc, _Terminated) else 'interrupted'}; "
                          f"the design log {log} keeps every finished candidate: run the same command with "

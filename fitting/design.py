@@ -9,8 +9,9 @@ residual and Jacobian are evaluated there. The predicted interval is the Gauss-N
 joint fit (`fitting.joint`) of that recording with the recordings already made (`with_data`: their
 residual at the guess sets their noise scale, their Jacobian is taken at the point). It is what the
 fitter reports when its optimum is the truth and the model represents the data; discretization and
-model error, which widen intervals of real data, enter only through `misfit="with"` (the default with
-recordings already made: the candidate misfits as they do).
+model error, which widen intervals of real data, enter through `misfit="with"` (the default with
+recordings already made: the candidate misfits as they do) and, with `dx_check=True`, through the fit's
+discretization check predicted for every recording (the grid's numerical error, added as the fit adds it).
 
 Candidates that differ only in the scene's differentiable data (plate amplitude, frequency, phase,
 ramp time, sample times and positions, floor friction) share one compiled rollout.
@@ -34,9 +35,10 @@ from jaxfoam import FIT_FIELDS, init_state, load_scene
 from jaxfoam.guards import atomic_output
 
 from .io import Silhouettes, camera_covering, plate_footprint, read_silhouettes, validate
+from .check import check_error, predicted_move
 from .joint import JointProblem, information_shares, joint_uncertainty, noise_scales
 from .problem import _data_fingerprint, build_problem, fit_grid
-from .settings import CalibrationError, FitSettings, NUISANCE_FIELDS
+from .settings import CalibrationError, DX_CHECK_ORDER, DX_CHECK_RATIO, FitSettings, GCI_SAFETY, NUISANCE_FIELDS
 from .synth import boundary_pixels, hard_masks
 
 # What a calibrated foam is quoted to (relative for mu, sigma_y, eta; absolute for m, dimensionless):
@@ -451,7 +453,7 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
            points: int = DEFAULT_POINTS, spread: float = DEFAULT_SPREAD, robust: str = "worst",
            duration: float = DEFAULT_DURATION, fps: float = DEFAULT_FPS, pixel_size: float | None = None,
            progress: Callable[[str], None] | None = None, log=None, resume: bool = False,
-           sampling: str = "same", misfit: str = "auto") -> DesignResult:
+           sampling: str = "same", misfit: str = "auto", dx_check: bool = False) -> DesignResult:
     """Rank the candidate recordings of `scene` by their predicted 95% intervals (module docs).
 
     Args:
@@ -468,6 +470,14 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
       misfit: "auto", "render" or "with" (`MISFITS`): the predicted recording's residual as rendered, or
         raised to the median RMS per effective residual of the `with_data` recordings at the guess (needs
         with_data; the guess should then be their fit). "auto": "with" when with_data is given.
+      dx_check: predict the intervals a fit reports, not only their statistical part: at the guess, each
+        recording's residual and Jacobian once more on a grid DX_CHECK_RATIO finer give the first-order
+        move of the estimate between the grids (`fitting.check.predicted_move`, as the fit's discretization
+        check without its refit), combined over the recordings by their Fisher information as the joint
+        fit combines them, extrapolated like the fit's check (GCI_SAFETY, DX_CHECK_ORDER) and added in
+        quadrature to every point's statistical half-width. A candidate whose silhouettes the grid resolves
+        poorly (a tear-off, a splash) then ranks below one the fit grid can represent. Costs about one more
+        Jacobian on the finer grid per candidate.
       log: a JSON file that receives each candidate's prediction as it finishes (written atomically);
         resume: take the candidates found there instead of evaluating them again (the log must be of the
         same design: CalibrationError otherwise).
@@ -530,7 +540,8 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
     say(f"{len(candidates)} candidates x {len(pts)} parameter points")
     fingerprint = hashlib.sha256(json.dumps(
         [spec, guess, [[v.name, list(v.values)] for v in variables], pts, robust, duration, fps, pixel_size,
-         settings.to_dict(), DESIGN_NOISE, sampling, misfit, [_data_fingerprint(d) for d in with_data]],
+         settings.to_dict(), DESIGN_NOISE, sampling, misfit, [_data_fingerprint(d) for d in with_data]]
+        + ([True] if dx_check else []),
         sort_keys=True, default=str).encode()).hexdigest()[:16]
     done = _read_log(log, fingerprint) if (log is not None and resume) else {}
     if done:
@@ -546,6 +557,12 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
             {n: p[n] for n in pb.transform.names}))[1], np.float64) for p in pts]
         made.append((pb, r0, jac))
         say(f"{labels[i]}: residual and {len(pts)} Jacobians at dx = {pb.dx:.4g} m")
+    made_shift = []
+    if dx_check:
+        for i, (pb, r0, jac) in enumerate(made):
+            zg = pb.transform.to_unconstrained({n: guess[n] for n in pb.transform.names})
+            made_shift.append(_grid_shift(pb, finer(pb, settings), zg, jac[0], r0))
+            say(f"{labels[i]}: grid check at dx = {pb.dx * DX_CHECK_RATIO:.4g} m")
     with_only = None
     if made:
         tr = made[0][0].transform
@@ -572,6 +589,11 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
             source = build_problem(_layout(template["scene"], template["recording"], other, dtype), other)
         else:
             source = base
+        fine = None
+        if dx_check:
+            same_pixels = dict(template["recording"], pixel_size=float(base.data.camera.pixel_size))
+            fine = build_problem(_layout(template["scene"], same_pixels, finer(base, settings), dtype),
+                                 finer(base, settings))
         say(f"group {gi + 1}/{len(groups)}: {len(members)} candidate(s) on one compiled rollout (dx = {base.dx:.4g} m, "
             f"{int(np.sum(base.sim.state0.active))} particles, {len(base.frames)} frames)")
         for c in members:
@@ -581,12 +603,14 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
             scene_c = load_scene(c["scene"], dtype=dtype)
             pb_c = base.with_scene(scene_c)
             src_c = pb_c if source is base else source.with_scene(scene_c)
-            per_point, share = [], None
+            per_point, reported, share, err_z = [], [], None, None
             for k, (p, pf) in enumerate(zip(pts, full)):
                 data = _render(src_c, pf, c["scene"], fit_grid(scene_c, settings)[1], [settings.seed, gi, candidates.index(c), k])
                 pb = pb_c.with_observations(data)
                 z = pb.transform.to_unconstrained({n: p[n] for n in pb.transform.names})
                 r, J = (np.asarray(a, np.float64) for a in pb.residual_and_jacobian(z))
+                if fine is not None and k == 0:
+                    shift_c = _grid_shift(pb, fine.with_scene(scene_c).with_observations(data), z, J, r)
                 joint = JointProblem([pb] + [m[0] for m in made], settings)
                 if misfit == "with":
                     own = _rms(r, joint.n_effective(0, r))
@@ -595,18 +619,25 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
                 joint.set_scales(noise_scales(joint, parts))
                 unc = joint_uncertainty(joint, parts, np.asarray(z, np.float64), settings.level)
                 per_point.append({n: [float(v) for v in unc.interval[j]] for j, n in enumerate(joint.names)})
+                if fine is not None:
+                    if k == 0:
+                        err_z = _joint_grid_error(joint, parts, [shift_c] + made_shift)
+                    reported.append(_with_error(unc, err_z, joint.transform, joint.names))
                 if k == 0:
                     sh = information_shares(joint, parts)
                     share = {n: [float(v) for v in sh[:, j]] for j, n in enumerate(joint.names)}
-            hws = [half_widths(iv, p) for iv, p in zip(per_point, pts)]
+            hws = [half_widths(iv, p) for iv, p in zip(reported or per_point, pts)]
             agg = {n: float(np.max([h[n] for h in hws]) if robust == "worst" else np.mean([h[n] for h in hws]))
                    for n in names}
             ratio = _tolerance_ratio(agg)
+            if fine is not None:
+                c.update(predicted_reported=reported,
+                         numerical_error_z={n: float(v) for n, v in zip(names, err_z)})
             c.update(predicted=per_point, half_width=agg, within=[n for n in names if ratio[n] <= 1.0],
                      score=float(np.exp(np.mean(np.log(np.maximum([ratio[n] for n in names], 1e-300))))),
                      information_share=share, wall_time=time.perf_counter() - t0)
             if log is not None:
-                done[_key(c)] = {k: c[k] for k in _RESULT_KEYS}
+                done[_key(c)] = {k: c[k] for k in _RESULT_KEYS + (_CHECK_KEYS if fine is not None else ())}
                 _write_log(log, fingerprint, done)
             say(f"  {c['values']}: " + ", ".join(f"{n} +-{_fmt_hw(n, agg[n])}" for n in names)
                 + f" ({c['wall_time']:.1f} s)")
@@ -614,13 +645,52 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
     with_hw = None if with_only is None else half_widths(with_only, guess)
     advice = _advice(candidates[0], names, with_hw, labels)
     out_settings = dict(settings.to_dict(), points=points, spread=spread, duration=duration, fps=fps,
-                        pixel_size=pixel_size, noise=DESIGN_NOISE, sampling=sampling, misfit=misfit, with_data=labels)
+                        pixel_size=pixel_size, noise=DESIGN_NOISE, sampling=sampling, misfit=misfit, with_data=labels,
+                        dx_check=bool(dx_check))
     return DesignResult(guess=guess, points=pts, variables={v.name: list(v.values) for v in variables}, robust=robust,
                         candidates=candidates, with_only=with_only, advice=advice,
                         wall_time=time.perf_counter() - wall0, settings=out_settings)
 
 
 _RESULT_KEYS = ("predicted", "half_width", "within", "score", "information_share", "wall_time")
+_CHECK_KEYS = ("predicted_reported", "numerical_error_z")
+
+
+def finer(problem, settings: FitSettings) -> FitSettings:
+    """The settings of the grid check's finer grid for `problem` (DX_CHECK_RATIO its dx, same pixels)."""
+    return dataclasses.replace(settings, dx=problem.dx * DX_CHECK_RATIO, pixel_level=problem.pixel_level)
+
+
+def _grid_shift(problem, other, z, J, r) -> np.ndarray:
+    """The first-order move (p,) of the estimate z from problem's grid to other's (the larger of
+    `predicted_move`'s two estimates per parameter, with its sign; inf where not finite)."""
+    with_fit, with_own, _ = predicted_move(problem, other, np.asarray(z, np.float64), J, r)
+    if with_fit is None:
+        return np.full(np.shape(J)[1], np.inf)
+    return check_error([with_fit, with_own], DX_CHECK_RATIO)[1]
+
+
+def _joint_grid_error(joint: JointProblem, parts, shifts) -> np.ndarray:
+    """The numerical error (p,) of a joint estimate from each recording's grid shift: the shifts weighted
+    by the recordings' Fisher information (noise-scaled) as `calibrate_joint`'s check combines them, then
+    extrapolated to the continuum with the fit's order and safety factor."""
+    _, Jw = joint.stack(parts)
+    fisher = Jw.T @ Jw
+    moved = np.zeros(fisher.shape[0])
+    for i, ((_, Ji), shift, idx) in enumerate(zip(parts, shifts, joint.index)):
+        Ji = Ji / joint.scales[i]
+        moved[idx] += Ji.T @ (Ji @ np.asarray(shift, np.float64))
+    move = np.linalg.lstsq(fisher, moved, rcond=None)[0]
+    return GCI_SAFETY * np.abs(move) / abs(DX_CHECK_RATIO ** DX_CHECK_ORDER - 1.0)
+
+
+def _with_error(unc, err_z, transform, names) -> dict:
+    """Physical intervals whose fitted-coordinate half-width is the statistical one and err_z in quadrature."""
+    z = np.asarray(unc.z, np.float64)
+    half = np.sqrt(np.square(0.5 * (unc.interval_z[:, 1] - unc.interval_z[:, 0])) + np.square(err_z))
+    with np.errstate(invalid="ignore"):
+        lo, hi = np.asarray(transform.to_physical(z - half)), np.asarray(transform.to_physical(z + half))
+    return {n: sorted([float(lo[j]), float(hi[j])]) for j, n in enumerate(names)}
 
 
 def _key(candidate: dict) -> str:

@@ -78,11 +78,13 @@ def test_a_grid_fits_another_grids_design_under_its_own_record(tmp_path, monkeyp
     grid = dataclasses.replace(S.GRIDS["default"], design_from="1cm")
     assert grid.design is S.GRIDS["1cm"] and grid.designed_tag == "_default_design1cm"
     assert S.GRIDS["default"].design is S.GRIDS["default"] and S.GRIDS["default"].designed_tag == "_default"
+    check = dataclasses.replace(S.GRIDS["default"], design_from="1cm_check")
+    assert check.design.design_check and check.design.guess_tag == "" and check.designed_tag == "_default_design1cm_check"
     truth = G.materials()[0]
     for kind in S.KINDS:
         S._save(S.record_path(0, "single", kind, grid=grid), _fit(truth, 0.9))
     S._save(S.record_path(0, "joint", grid=grid), _fit(truth, 0.25))
-    with pytest.raises(SystemExit, match="no design on the 1cm grid"):
+    with pytest.raises(SystemExit, match="the design's guess needs the joint fit mat0_joint.json"):
         S.run_material(0, "designed_joint", grid, say=lambda m: None)
     S._save(S.record_path(0, "design", grid=S.GRIDS["1cm"]),
             dict(candidates=20, wall=100.0, values={"plate.motion.amplitude": 0.02}, advice="Film 1 s.",

@@ -322,3 +322,29 @@ def test_misfit_with_takes_the_made_recordings_misfit(one_candidate, tmp_path):
     auto = design(PLATE, TRUTH, one, with_data=[off_path], **kw)
     assert with_ > 1.5 * render and auto.best["half_width"]["sigma_y"] == pytest.approx(with_, rel=1e-9)
     assert auto.settings["misfit"] == "with"
+
+
+@pytest.mark.slow
+def test_dx_check_predicts_the_fits_numerical_error(one_candidate):
+    """dx_check=True adds the fit's discretization check to the prediction: the candidate's numerical error
+    is the one `discretization_error` (without its refit) finds on the candidate's recording at the truth,
+    the reported half-width in fitted coordinates is the statistical one and that error in quadrature, and
+    the ranking uses it."""
+    from fitting.check import discretization_error
+    res, data, _ = one_candidate
+    checked = design(PLATE, TRUTH, [Variable("duration", (0.3,))], settings=ONE, points=1, dx_check=True)
+    best = checked.best
+    assert best["predicted"][0]["sigma_y"] == pytest.approx(res.best["predicted"][0]["sigma_y"], rel=1e-9)
+    pb = build_problem(data, ONE)
+    z = pb.transform.to_unconstrained({"sigma_y": 25.0})
+    r, J = (np.asarray(a) for a in pb.residual_and_jacobian(z))
+    err, _ = discretization_error(pb, z, J, r=r, refit=0)
+    assert float(err[0]) > 0
+    assert best["numerical_error_z"]["sigma_y"] == pytest.approx(float(err[0]), rel=1e-6)
+    zs = lambda iv: [float(pb.transform.to_unconstrained({"sigma_y": v})[0]) for v in iv]  # logit-log coordinates
+    stat = 0.5 * np.diff(zs(best["predicted"][0]["sigma_y"]))[0]
+    rep = 0.5 * np.diff(zs(best["predicted_reported"][0]["sigma_y"]))[0]
+    assert rep == pytest.approx(math.hypot(stat, float(err[0])), rel=1e-9)
+    lo, hi = best["predicted_reported"][0]["sigma_y"]
+    assert best["half_width"]["sigma_y"] == pytest.approx(0.5 * (hi - lo) / 25.0, rel=1e-9)
+    assert checked.settings["dx_check"] is True
