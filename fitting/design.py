@@ -561,7 +561,7 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
     if dx_check:
         for i, (pb, r0, jac) in enumerate(made):
             zg = pb.transform.to_unconstrained({n: guess[n] for n in pb.transform.names})
-            made_shift.append(_grid_shift(pb, finer(pb, settings), zg, jac[0], r0))
+            made_shift.append(_grid_shift(pb, build_problem(with_data[i], finer(pb, settings)), zg, jac[0], r0))
             say(f"{labels[i]}: grid check at dx = {pb.dx * DX_CHECK_RATIO:.4g} m")
     with_only = None
     if made:

@@ -348,3 +348,8 @@ def test_dx_check_predicts_the_fits_numerical_error(one_candidate):
     lo, hi = best["predicted_reported"][0]["sigma_y"]
     assert best["half_width"]["sigma_y"] == pytest.approx(0.5 * (hi - lo) / 25.0, rel=1e-9)
     assert checked.settings["dx_check"] is True
+    # A recording made that is a copy of the candidate's has the same grid move: the Fisher-weighted error is unchanged.
+    _, _, path = one_candidate
+    both = design(PLATE, TRUTH, [Variable("duration", (0.3,))], settings=ONE, points=1, dx_check=True,
+                  with_data=[path], misfit="render")
+    assert both.best["numerical_error_z"]["sigma_y"] == pytest.approx(float(err[0]), rel=1e-6)
