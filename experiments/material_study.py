@@ -21,7 +21,8 @@ Usage: python -m experiments material_study [--material K ...] [--stop-after STE
                                             [--design-grid 1cm|default] [--report]
 Writes experiments/results/material_study.md (--grid default: material_study_default.md, the fitter's
 default grid, records *_default). With --design-grid G (another grid) step (iii) fits, on --grid, the
-recording that G's design chose (records *_designed_joint<tag>_design<G>). SI units.
+recording that G's design chose (records *_designed_joint<tag>_design<G>; page <page>_design<G>.md);
+G = 1cm_check is the 1 cm design ranked with `design(dx_check=True)`. SI units.
 """
 from __future__ import annotations
 
@@ -331,7 +332,20 @@ def report(materials, grid: Grid = GRIDS["1cm"]) -> Path:
                 rows.append([n, _fmt_hw(n, des["predicted_guess"][n]), _fmt_hw(n, des["predicted_worst"][n]),
                              _fmt_hw(n, pt), _fmt_hw(n, ach) + ("" if informative else " (bounds)"),
                              f"{ach / pt:.2f}" if pt > 0 else "-"] + mis)
-            body.append("Designed joint fit: predicted statistical half-widths against achieved:\n")
+            if "predicted_reported_truth" in des:
+                rep_rows = []
+                for n in NAMES:
+                    ach = half_width(n, dj["interval"][n], dj["params"][n])
+                    pr = des["predicted_reported_truth"][n]
+                    goals.setdefault("pred_reported", []).append(ach / pr if pr > 0 else math.inf)
+                    rep_rows.append([n, _fmt_hw(n, pr), _fmt_hw(n, ach), f"{ach / pr:.2f}" if pr > 0 else "-"])
+                body.append("Designed joint fit: reported half-widths (statistical and numerical) predicted by the "
+                            "design's dx_check at the truth on its own grid, against those the fit reported:\n")
+                body.append(C.md_table(["param", "predicted reported (truth)", "achieved reported",
+                                        "achieved / predicted"], rep_rows) + "\n")
+            body.append("Designed joint fit: predicted statistical half-widths against achieved"
+                        + (" (the 'worst point' and misfit columns include the dx_check's numerical error)"
+                           if "predicted_reported_truth" in des else "") + ":\n")
             body.append(C.md_table(["param", "predicted (guess)", "predicted (worst point)", "predicted (truth)",
                                     "achieved", "achieved / predicted (truth)", "misfit 'with': predicted (guess)",
                                     "(worst point)", "achieved / predicted (worst)"], rows) + "\n")
@@ -355,9 +369,13 @@ def report(materials, grid: Grid = GRIDS["1cm"]) -> Path:
         inside = sum(0.5 <= r <= 2.0 for r in goals["pred_misfit"])
         summary.append(f"- The same with the design's misfit 'with' (the made recordings' misfit; worst point): "
                        f"{inside} of {len(goals['pred_misfit'])}.")
+    if goals.get("pred_reported"):
+        inside = sum(0.5 <= r <= 2.0 for r in goals["pred_reported"])
+        summary.append(f"- Reported half-widths within 2x of those the design's dx_check predicted at the truth: "
+                       f"{inside} of {len(goals['pred_reported'])} parameter-cases.")
     text = "\n".join(summary) + "\n\n" + "\n".join(body)
     return C.write_md(grid.page, False, "One foam in three recordings: single, joint and designed fits on reference data",
-                      text, command=NAME + ("" if grid.page == NAME else " --grid default")
+                      text, command=NAME + ("" if grid.tag == "" else " --grid default")
                       + ("" if grid.design_from is None else f" --design-grid {grid.design_from}"))
 
 
@@ -373,7 +391,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     grid = GRIDS[args.grid]
     if args.design_grid is not None and args.design_grid != args.grid:
-        grid = dataclasses.replace(grid, design_from=args.design_grid)
+        grid = dataclasses.replace(grid, design_from=args.design_grid, page=f"{grid.page}_design{args.design_grid}")
     mats = args.material if args.material is not None else list(range(G.N_MATERIALS))
     for k in mats:
         if not 0 <= k < G.N_MATERIALS:
