@@ -133,8 +133,9 @@ def _next_out(field, axis: int, side: int):
 def _face_grip(v, rel, half_size, vp, grid: Grid):
     """Grip "face" outside a sticky box (`Plate.grip`): nodes 0 < d < dx outside it (Chebyshev distance d,
     m) take vp + (v_next - vp) d / (d + dx), v_next the node one cell further out along the axis of the
-    largest excess, so the velocity profile reaches vp at the face. v (G, d) m/s, rel (G, d) m node minus
-    plate centre, half_size (d,) m, vp (d,) m/s."""
+    largest excess, so the velocity profile reaches vp at the face; along that axis's outward normal only
+    where this pushes the node outward relative to its own velocity. v (G, d) m/s, rel (G, d) m node
+    minus plate centre, half_size (d,) m, vp (d,) m/s."""
     d = v.shape[-1]
     excess = jnp.abs(rel) - half_size[None, :]
     dist = jnp.max(_pos_part(excess), axis=-1)

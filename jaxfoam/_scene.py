@@ -66,7 +66,7 @@ class Plate:
     PLATE_GRIPS: "nodes" inside it only; "face": also each node a distance 0 < d < dx outside the box
     (Chebyshev distance, m), which takes v_plate + (v_next - v_plate) d / (d + dx), v_next the velocity
     of the node one cell further out along the nearest face's normal: the linear profile that meets the
-    plate's velocity at its face).
+    plate's velocity at its face; along that normal only where it pushes the node away from the plate).
     Centre at time t: center + axis A r(t) sin(2 pi f t + phase), r(t) = min(1, t / ramp_time),
     or the samples interpolated linearly (held constant outside their time range).
     """
