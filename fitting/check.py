@@ -11,7 +11,8 @@ import numpy as np
 from . import optim
 
 from .silhouette import BSPLINE_SUPPORT
-from .settings import CORRELATION_WINDOW_SUPPORTS, DEFAULT_LEVEL, DX_CHECK_ORDER, DX_CHECK_RATIO, FTOL, GCI_SAFETY, XTOL
+from .settings import (CORRELATION_WINDOW_SUPPORTS, DEFAULT_LEVEL, DX_CHECK_ORDER, DX_CHECK_RATIO, FTOL, GCI_SAFETY, XTOL,
+                       FitSettings)
 from .result import _format_params
 from .problem import CalibrationProblem, build_problem
 from .track import label_components
@@ -90,8 +91,7 @@ def discretization_error(problem: CalibrationProblem, z, J, ratio: float = DX_CH
     refit also "shift_refit" (p,), "refit_iterations", "refit_reason" and "refit_loss" (start, end).
     progress: callable(str) receiving one line per refit iteration, or None.
     """
-    settings = dataclasses.replace(problem.settings, dx=problem.dx * ratio, pixel_level=problem.pixel_level)
-    other = build_problem(problem.data, settings)
+    other = build_problem(problem.data, finer_settings(problem, problem.settings, ratio))
     p = np.shape(J)[1]
     at_z = {}
     with_fit, with_own, frame_change = predicted_move(problem, other, z, J, r, other_at_z=at_z)
@@ -111,6 +111,11 @@ def discretization_error(problem: CalibrationProblem, z, J, ratio: float = DX_CH
             return np.full(p, np.inf), np.full(p, np.nan)
         moves.append(measured["move"])
     return check_error(moves, ratio)
+
+
+def finer_settings(problem: CalibrationProblem, settings: FitSettings, ratio: float = DX_CHECK_RATIO) -> FitSettings:
+    """`settings` on the grid check's finer grid for `problem`: dx `ratio` times problem's, same pixel level."""
+    return dataclasses.replace(settings, dx=problem.dx * ratio, pixel_level=problem.pixel_level)
 
 
 def check_error(moves, ratio: float = DX_CHECK_RATIO):

@@ -35,10 +35,10 @@ from jaxfoam import FIT_FIELDS, init_state, load_scene
 from jaxfoam.guards import atomic_output
 
 from .io import Silhouettes, camera_covering, plate_footprint, read_silhouettes, validate
-from .check import check_error, predicted_move
-from .joint import JointProblem, information_shares, joint_uncertainty, noise_scales
+from .check import check_error, combine_intervals, finer_settings, predicted_move
+from .joint import JointProblem, information_shares, joint_grid_error, joint_uncertainty, noise_scales
 from .problem import _data_fingerprint, build_problem, fit_grid
-from .settings import CalibrationError, DX_CHECK_ORDER, DX_CHECK_RATIO, FitSettings, GCI_SAFETY, NUISANCE_FIELDS
+from .settings import CalibrationError, DX_CHECK_RATIO, FitSettings, NUISANCE_FIELDS
 from .synth import boundary_pixels, hard_masks
 
 # What a calibrated foam is quoted to (relative for mu, sigma_y, eta; absolute for m, dimensionless):
@@ -561,7 +561,7 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
     if dx_check:
         for i, (pb, r0, jac) in enumerate(made):
             zg = pb.transform.to_unconstrained({n: guess[n] for n in pb.transform.names})
-            made_shift.append(_grid_shift(pb, build_problem(with_data[i], finer(pb, settings)), zg, jac[0], r0))
+            made_shift.append(_grid_shift(pb, build_problem(with_data[i], finer_settings(pb, settings)), zg, jac[0], r0))
             say(f"{labels[i]}: grid check at dx = {pb.dx * DX_CHECK_RATIO:.4g} m")
     with_only = None
     if made:
@@ -592,8 +592,8 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
         fine = None
         if dx_check:
             same_pixels = dict(template["recording"], pixel_size=float(base.data.camera.pixel_size))
-            fine = build_problem(_layout(template["scene"], same_pixels, finer(base, settings), dtype),
-                                 finer(base, settings))
+            fine = build_problem(_layout(template["scene"], same_pixels, finer_settings(base, settings), dtype),
+                                 finer_settings(base, settings))
         say(f"group {gi + 1}/{len(groups)}: {len(members)} candidate(s) on one compiled rollout (dx = {base.dx:.4g} m, "
             f"{int(np.sum(base.sim.state0.active))} particles, {len(base.frames)} frames)")
         for c in members:
@@ -621,8 +621,8 @@ def design(scene, guess: dict, variables, *, with_data=(), settings: FitSettings
                 per_point.append({n: [float(v) for v in unc.interval[j]] for j, n in enumerate(joint.names)})
                 if fine is not None:
                     if k == 0:
-                        err_z = _joint_grid_error(joint, parts, [shift_c] + made_shift)
-                    reported.append(_with_error(unc, err_z, joint.transform, joint.names))
+                        err_z = joint_grid_error(joint, parts, [shift_c] + made_shift)
+                    reported.append(_intervals(unc, err_z, joint.transform, joint.names))
                 if k == 0:
                     sh = information_shares(joint, parts)
                     share = {n: [float(v) for v in sh[:, j]] for j, n in enumerate(joint.names)}
@@ -656,11 +656,6 @@ _RESULT_KEYS = ("predicted", "half_width", "within", "score", "information_share
 _CHECK_KEYS = ("predicted_reported", "numerical_error_z")
 
 
-def finer(problem, settings: FitSettings) -> FitSettings:
-    """The settings of the grid check's finer grid for `problem` (DX_CHECK_RATIO its dx, same pixels)."""
-    return dataclasses.replace(settings, dx=problem.dx * DX_CHECK_RATIO, pixel_level=problem.pixel_level)
-
-
 def _grid_shift(problem, other, z, J, r) -> np.ndarray:
     """The first-order move (p,) of the estimate z from problem's grid to other's (the larger of
     `predicted_move`'s two estimates per parameter, with its sign; inf where not finite)."""
@@ -670,27 +665,9 @@ def _grid_shift(problem, other, z, J, r) -> np.ndarray:
     return check_error([with_fit, with_own], DX_CHECK_RATIO)[1]
 
 
-def _joint_grid_error(joint: JointProblem, parts, shifts) -> np.ndarray:
-    """The numerical error (p,) of a joint estimate from each recording's grid shift: the shifts weighted
-    by the recordings' Fisher information (noise-scaled) as `calibrate_joint`'s check combines them, then
-    extrapolated to the continuum with the fit's order and safety factor."""
-    _, Jw = joint.stack(parts)
-    fisher = Jw.T @ Jw
-    moved = np.zeros(fisher.shape[0])
-    for i, ((_, Ji), shift, idx) in enumerate(zip(parts, shifts, joint.index)):
-        Ji = Ji / joint.scales[i]
-        moved[idx] += Ji.T @ (Ji @ np.asarray(shift, np.float64))
-    move = np.linalg.lstsq(fisher, moved, rcond=None)[0]
-    return GCI_SAFETY * np.abs(move) / abs(DX_CHECK_RATIO ** DX_CHECK_ORDER - 1.0)
-
-
-def _with_error(unc, err_z, transform, names) -> dict:
-    """Physical intervals whose fitted-coordinate half-width is the statistical one and err_z in quadrature."""
-    z = np.asarray(unc.z, np.float64)
-    half = np.sqrt(np.square(0.5 * (unc.interval_z[:, 1] - unc.interval_z[:, 0])) + np.square(err_z))
-    with np.errstate(invalid="ignore"):
-        lo, hi = np.asarray(transform.to_physical(z - half)), np.asarray(transform.to_physical(z + half))
-    return {n: sorted([float(lo[j]), float(hi[j])]) for j, n in enumerate(names)}
+def _intervals(unc, err_z, transform, names) -> dict:
+    """name -> [lo, hi]: the statistical interval and err_z combined as the fit reports them."""
+    return {n: [float(v) for v in row] for n, row in zip(names, combine_intervals(unc, err_z, transform))}
 
 
 def _key(candidate: dict) -> str:

@@ -24,14 +24,14 @@ import numpy as np
 from jaxfoam.guards import atomic_output
 
 from . import optim
-from .check import (combine_intervals, correlation_area, discretization_error, numerical_half_width)
+from .check import (check_error, combine_intervals, correlation_area, discretization_error, numerical_half_width)
 from .driver import (_data_fingerprint, _path_settings, judge_reported_intervals, make_optimizer, make_starts,
                      silhouette_mismatch, use_population)
 from .io import Silhouettes, read_silhouettes
 from .problem import CalibrationProblem, build_problem, fit_transform
 from .result import _format_params
-from .settings import (CORRELATION_WINDOW_SUPPORTS, DEFAULT_DX_REFIT, DX_CHECK_ORDER, DX_CHECK_RATIO, FIT_PPC,
-                       FRAME_BOUNDARY_SPACINGS, FTOL, GCI_SAFETY, NUISANCE_FIELDS, XTOL, CalibrationError,
+from .settings import (CORRELATION_WINDOW_SUPPORTS, DEFAULT_DX_REFIT, DX_CHECK_RATIO, FIT_PPC,
+                       FRAME_BOUNDARY_SPACINGS, FTOL, NUISANCE_FIELDS, XTOL, CalibrationError,
                        FitSettings)
 from .silhouette import BSPLINE_SUPPORT, particle_spacing
 
@@ -230,6 +230,18 @@ class JointFitResult:
         return "\n".join(lines)
 
 
+def joint_grid_error(joint: JointProblem, parts, shifts) -> np.ndarray:
+    """The numerical error (p,) of a joint estimate, fitted coordinates, from each recording's grid shift
+    (`discretization_error`'s shift_z, that recording's coordinates): the shifts weighted by the
+    recordings' noise-scaled Fisher information, extrapolated like a single fit's check (`check_error`)."""
+    _, Jw = joint.stack(parts)
+    moved = np.zeros(Jw.shape[1])
+    for i, ((_, Ji), shift, idx) in enumerate(zip(parts, shifts, joint.index)):
+        Ji = Ji / joint.scales[i]
+        moved[idx] += Ji.T @ (Ji @ np.asarray(shift, np.float64))
+    return check_error([np.linalg.lstsq(Jw.T @ Jw, moved, rcond=None)[0]])[0]
+
+
 def calibrate_joint(datas, settings: FitSettings | None = None, *, log=None, resume: bool = False,
                     progress: Callable[[str], None] | None = None, joint: JointProblem | None = None) -> JointFitResult:
     """Fit one material's parameters to several recordings (see the module docstring).
@@ -314,8 +326,6 @@ def calibrate_joint(datas, settings: FitSettings | None = None, *, log=None, res
             fitlog.close()
     z = np.asarray(stage2.x)
     parts = joint.parts(z)
-    r, J = joint.stack(parts)
-    keep = (r != 0) | np.any(J != 0, axis=1)
     unc = joint_uncertainty(joint, parts, z, settings.level)
     params = joint.params_of(z)
     stat = {n: tuple(float(v) for v in unc.interval[k]) for k, n in enumerate(names)}
@@ -325,18 +335,11 @@ def calibrate_joint(datas, settings: FitSettings | None = None, *, log=None, res
     share = information_shares(joint, parts)
     if settings.dx_check:
         refit = DEFAULT_DX_REFIT[joint.problems[0].scene.dim] if settings.dx_refit is None else int(settings.dx_refit)
-        Jw = J[keep]
-        fisher = Jw.T @ Jw
-        moved = np.zeros(len(names))
+        shifts = []
         for i, (pb, zi, (ri, Ji)) in enumerate(zip(joint.problems, joint.split(z), parts)):
             say(f"discretization check, recording {i}: dx = {pb.dx * DX_CHECK_RATIO:.4g} m")
-            _, shift = discretization_error(pb, zi, Ji, r=ri, refit=refit, progress=say)
-            own = np.zeros((len(zi), len(names)))
-            own[:, joint.index[i]] = np.eye(len(zi))
-            Fi = (Ji / joint.scales[i]).T @ (Ji / joint.scales[i])
-            moved += own.T @ (Fi @ shift)
-        move = np.linalg.lstsq(fisher, moved, rcond=None)[0]
-        err_z = GCI_SAFETY * np.abs(move) / abs(DX_CHECK_RATIO ** DX_CHECK_ORDER - 1.0)
+            shifts.append(discretization_error(pb, zi, Ji, r=ri, refit=refit, progress=say)[1])
+        err_z = joint_grid_error(joint, parts, shifts)
         both = combine_intervals(unc, err_z, tr)
         half = numerical_half_width(tr, z, err_z)
         for k, n in enumerate(names):

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from fitting import FitSettings, CalibrationError, synthesize
-from fitting.joint import build_joint, calibrate_joint
+from fitting.joint import build_joint, calibrate_joint, joint_grid_error
 from helpers import edited, scene as zoo_scene
 from jaxfoam.cli import main
 
@@ -102,3 +102,38 @@ def test_joint_population_equals_joint_in_turn(recordings):
     for n in seq.fitted:
         assert pop.params[n] == pytest.approx(seq.params[n], rel=1e-10)
     assert [r["iterations"] for r in pop.runs] == [r["iterations"] for r in seq.runs]
+
+
+def _joint_of(index, scales, names):
+    """A stand-in JointProblem with only what `joint_grid_error` reads (its stack, index and scales)."""
+    from types import SimpleNamespace
+    from fitting.joint import JointProblem
+    ns = SimpleNamespace(names=tuple(names), index=[np.asarray(i, int) for i in index],
+                         scales=np.asarray(scales, np.float64))
+    ns.stack = lambda parts: JointProblem.stack(ns, parts)
+    return ns
+
+
+def test_joint_grid_error_of_one_recording_is_the_single_fits():
+    """A joint of one recording holding every parameter has the single fit's numerical error
+    (check_error of its grid shift), whatever its noise scale."""
+    from fitting.check import check_error
+    rng = np.random.default_rng(0)
+    J = rng.normal(size=(40, 3))
+    shift = np.array([0.3, -0.05, 0.01])
+    joint = _joint_of([[0, 1, 2]], [3.0], ["mu", "sigma_y", "eta"])
+    err = joint_grid_error(joint, [(rng.normal(size=40), J)], [shift])
+    np.testing.assert_allclose(err, check_error([shift])[0], rtol=1e-12)
+
+
+def test_joint_grid_error_weights_shifts_by_information():
+    """Two recordings sharing one parameter: its joint move is their shifts averaged with the weights of
+    their noise-scaled Fisher information, |J_i|^2 / s_i^2, then extrapolated as a single fit's."""
+    from fitting.check import check_error
+    J0, J1 = np.full((10, 1), 2.0), np.full((30, 1), 0.5)
+    scales = [1.0, 0.5]
+    f0, f1 = np.sum(J0 ** 2) / 1.0, np.sum(J1 ** 2) / 0.25
+    joint = _joint_of([[0], [0]], scales, ["sigma_y"])
+    err = joint_grid_error(joint, [(np.zeros(10), J0), (np.zeros(30), J1)], [np.array([0.2]), np.array([-0.1])])
+    move = (f0 * 0.2 + f1 * -0.1) / (f0 + f1)
+    np.testing.assert_allclose(err, check_error([[move]])[0], rtol=1e-12)
