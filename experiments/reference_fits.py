@@ -11,8 +11,12 @@ Each fit writes experiments/results/reference_fits/<file>.json, and its fit log 
 a rerun skips finished fits and resumes a killed one from its log. `--report` rebuilds the table from the records only.
 `--from-fit FILE=FIT.json` records a default fit of FILE made by `jaxfoam fit` elsewhere (on a GPU, say):
 its settings are checked against the defaults and the loss at the truth is computed here.
+`--floor-phase X` fits the files with a Coulomb floor with only that setting changed (`jaxfoam fit
+--floor-phase X`), into experiments/results/reference_fits_floor_phase_X/; the page gives their table
+below the defaults'.
 
 Usage: python -m experiments reference_fits [--only TEXT] [--report] [--from-fit FILE=FIT.json ...]
+                                            [--floor-phase X]
 Writes experiments/results/reference_fits.md. SI units.
 """
 from __future__ import annotations
@@ -39,11 +43,16 @@ LOGS = Path(__file__).resolve().parents[1] / "out" / NAME  # fit logs (tens of M
 GOAL_RATIO = 1.2  # issue goal: loss at truth / fitted loss on the default grid
 
 
+def phase_records(phase: float) -> Path:
+    """Where the fits with `--floor-phase phase` are recorded."""
+    return C.RESULTS / f"{NAME}_floor_phase_{phase:g}"
+
+
 def fit_one(path: Path, settings: FitSettings) -> dict:
     """Fit one reference file with `settings` (resuming its log); the record of the result."""
-    RECORDS.mkdir(parents=True, exist_ok=True)
-    LOGS.mkdir(parents=True, exist_ok=True)
-    log = LOGS / f"{path.stem}.fitlog.h5"
+    logs = LOGS if settings.floor_phase == 0.0 else LOGS.with_name(phase_records(settings.floor_phase).name)
+    logs.mkdir(parents=True, exist_ok=True)
+    log = logs / f"{path.stem}.fitlog.h5"
     data = read_silhouettes(path)
     t0 = time.perf_counter()
     res = calibrate(data, settings, log=log, resume=log.exists())
@@ -54,7 +63,8 @@ def fit_one(path: Path, settings: FitSettings) -> dict:
     return dict(file=path.name, truth=truth, params={n: float(res.params[n]) for n in res.fitted},
                 interval={n: list(map(float, res.interval[n])) for n in res.fitted},
                 identifiable={n: bool(res.identifiable[n]) for n in res.fitted}, loss=float(res.loss),
-                loss_truth=float(loss_truth), dx=float(problem.dx), wall=float(res.wall_time), run_wall=wall,
+                loss_truth=float(loss_truth), dx=float(problem.dx), floor_phase=problem.floor_phase,
+                wall=float(res.wall_time), run_wall=wall,
                 reproduces=bool(res.reproduces_data), notes=list(res.notes),
                 date=time.strftime("%Y-%m-%d"))
 
@@ -76,7 +86,9 @@ def record_from_fit(path: Path, fit_json: Path) -> dict:
     dim = problem.scene.dim
     checks = [("dx", got["dx"], float(problem.dx)), ("ppc", got["ppc"], fit_grid(problem.scene, settings)[1]),
               ("max_iter", got["max_iter"], DEFAULT_MAX_ITER[settings.optimizer]),
-              ("dx_refit", got["dx_refit"], DEFAULT_DX_REFIT[dim])]
+              ("dx_refit", got["dx_refit"], DEFAULT_DX_REFIT[dim]),
+              # fits written before floor_phase existed had a node row on the floor
+              ("floor_phase", got.get("floor_phase", None if problem.floor_phase is None else 0.0), problem.floor_phase)]
     checks += [(k, got[k], default[k]) for k in _DEFAULT_FIELDS]
     checks += [("bounds", got["bounds"], {n: list(DEFAULT_BOUNDS[n]) for n in problem.transform.names}),
                ("data.frames_used", len(fit["data"]["frames_used"]), len(data.times) - 1),
@@ -99,6 +111,32 @@ def record_from_fit(path: Path, fit_json: Path) -> dict:
 def _plain(v):
     """JSON-comparable form (tuples as lists)."""
     return json.loads(json.dumps(v))
+
+
+def has_coulomb_floor(path: Path) -> bool:
+    """Whether the file's scene has a floor with Coulomb friction and grid contact."""
+    floor = json.loads(read_silhouettes(path).scene_json).get("floor", {})
+    return bool(floor) and floor.get("friction", 0.0) != "sticky" and floor.get("contact", "grid") == "grid"
+
+
+def compare(default: list[dict], other: list[dict], phase: float) -> str:
+    """Per file of `other`: each parameter's error with the defaults and with floor_phase `phase`, the loss
+    ratios and whether the truth lies inside each interval."""
+    by_file = {r["file"]: r for r in default}
+    head = ["file", "param", "truth", "error, default", f"error, floor phase {phase:g}", "truth inside (default / phase)",
+            "loss truth / fit (default / phase)"]
+    rows = []
+    for r in other:
+        d = by_file.get(r["file"])
+        if d is None:
+            continue
+        for i, n in enumerate(n for n in FIT_FIELDS if n in r["params"]):
+            t = r["truth"][n]
+            inside = ["yes" if x["interval"][n][0] <= t <= x["interval"][n][1] else "NO" for x in (d, r)]
+            rows.append([r["file"] if i == 0 else "", n, f"{t:.4g}", f"{100 * (d['params'][n] / t - 1):+.0f}%",
+                         f"{100 * (r['params'][n] / t - 1):+.0f}%", " / ".join(inside),
+                         f"{d['loss_truth'] / d['loss']:.2f} / {r['loss_truth'] / r['loss']:.2f}" if i == 0 else ""])
+    return C.md_table(head, rows)
 
 
 def write_record(path: Path, record: dict) -> None:
@@ -152,6 +190,8 @@ def main(argv=None) -> int:
     ap.add_argument("--report", action="store_true", help="only rebuild the table from the records")
     ap.add_argument("--from-fit", nargs="+", default=[], metavar="FILE=FIT.json",
                     help="record default fits made elsewhere: FILE a name in experiments/reference/data")
+    ap.add_argument("--floor-phase", type=float, default=None, metavar="X",
+                    help="fit the files with a Coulomb floor with floor_phase X (cells), all else default")
     args = ap.parse_args(sys.argv[1:] if argv is None else argv)
     jax.config.update("jax_enable_x64", True)
     for item in args.from_fit:
@@ -167,12 +207,16 @@ def main(argv=None) -> int:
     files = sorted(DATA.glob("*.h5"))
     if args.only:
         files = [p for p in files if args.only in p.name]
-    settings = FitSettings()
+    settings, where = FitSettings(), RECORDS
+    if args.floor_phase is not None:
+        settings, where = FitSettings(floor_phase=args.floor_phase).validate(), phase_records(args.floor_phase)
+        files = [p for p in files if has_coulomb_floor(p)]
     for path in files if not args.report else []:
-        out = RECORDS / f"{path.stem}.json"
+        out = where / f"{path.stem}.json"
         if out.exists():
             continue
-        print(f"fitting {path.name} with the default settings", flush=True)
+        where.mkdir(parents=True, exist_ok=True)
+        print(f"fitting {path.name} with floor_phase {settings.floor_phase:g}, every other setting default", flush=True)
         record = fit_one(path, settings)
         write_record(out, record)
         print(f"  {record['params']} in {record['wall'] / 60:.1f} min; loss at truth / fit "
@@ -181,6 +225,14 @@ def main(argv=None) -> int:
     body = ("The fitter's defaults (`jaxfoam fit data.h5 --out fit.json`) on every file of "
             "experiments/reference/data (the independent reference simulator's silhouettes; "
             "experiments/reference/data/README.md gives each file's truth and resolution).\n\n" + report(records))
+    for folder in sorted(C.RESULTS.glob(f"{NAME}_floor_phase_*")):
+        alt = [json.loads(p.read_text()) for p in sorted(folder.glob("*.json"))]
+        if alt:
+            phase = alt[0]["floor_phase"]
+            body += (f"\n\n## The files with a Coulomb floor, `--floor-phase {phase:g}`\n\nThe same fits with the fit "
+                     f"grid's node rows placed so that the floor lies {phase:g} cells above the row below it "
+                     f"(`jaxfoam fit --floor-phase {phase:g}`), every other setting default; records in "
+                     f"experiments/results/{folder.name}/.\n\n" + compare(records, alt, phase) + "\n\n" + report(alt))
     C.write_md(NAME, False, "Default fits on the reference simulator's data", body)
     return 0
 

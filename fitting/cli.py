@@ -174,7 +174,7 @@ def add_fit_parser(subparsers) -> argparse.ArgumentParser:
                     "silhouette file. Density and kappa are known inputs from the scene. Writes fit.json, a loss "
                     "curve (<out>_loss.png), observed vs simulated silhouettes (<out>_overlay.png) and an HDF5 fit "
                     "log of every iteration (<out>.fitlog.h5) that --resume continues.")
-    from jaxfoam.cli import add_budget_options, int_at_least, positive_float
+    from jaxfoam.cli import add_budget_options, float_in, int_at_least, positive_float
 
     ap.add_argument("data", nargs="+", help="silhouette file (.h5); several files of one material: a joint fit")
     ap.add_argument("--out", required=True, help="result file (.json)")
@@ -183,6 +183,9 @@ def add_fit_parser(subparsers) -> argparse.ArgumentParser:
                          f"/ {FIT_CELLS[3]} in 3D)")
     ap.add_argument("--ppc", type=int_at_least(1), default=None,
                     help=f"particles per cell (default {FIT_PPC[2]} in 2D, {FIT_PPC[3]} in 3D)")
+    ap.add_argument("--floor-phase", type=float_in(0.0, 1.0, hi_open=True, unit="cells"), default=0.0,
+                    help="cells from the node row below the floor up to the floor on the fit's grid (default 0: "
+                         "a row on the floor)")
     ap.add_argument("--optimizer", choices=OPTIMIZERS, default="lm", help="default lm (Levenberg-Marquardt)")
     ap.add_argument("--fix", default=None,
                     help="hold parameters fixed, e.g. m=0.5,eta=10; kappa=.. or rho=.. override the scene's values")
@@ -250,7 +253,7 @@ def settings_from_args(args) -> FitSettings:
     """The validated `FitSettings` of parsed `fit` arguments."""
     fixed = parse_fixed(args.fix)
     fit_also = parse_fit_also(getattr(args, "fit_also", None))
-    return FitSettings(dx=args.dx, ppc=args.ppc, optimizer=args.optimizer, fixed=fixed,
+    return FitSettings(dx=args.dx, ppc=args.ppc, floor_phase=args.floor_phase, optimizer=args.optimizer, fixed=fixed,
                        bounds=parse_bounds(args.bounds), starts=args.starts, fit_also=fit_also,
                        initial=parse_start(getattr(args, "start", None), fixed, fit_also), max_iter=args.max_iter,
                        time_budget=parse_duration(getattr(args, "time_budget", None)),

@@ -112,10 +112,14 @@ def _path_settings(settings: FitSettings) -> dict:
 
 
 def _same_fit(logged: dict, fingerprint: dict) -> bool:
-    """Whether a fit log's fingerprint (data, path settings, dx) is this fit's. A setting that did not
-    exist when the log was written matches when this fit leaves it at its default, which is the
-    behaviour the log's version had (e.g. `resample` and `fracture`, off)."""
+    """Whether a fit log's fingerprint (data, path settings, dx, floor phase) is this fit's. A setting that
+    did not exist when the log was written matches when this fit leaves it at its default, which is the
+    behaviour the log's version had (e.g. `resample` and `fracture`, off); a log without a floor phase
+    had a node row on the floor."""
     current = json.loads(json.dumps(fingerprint))
+    logged = dict(logged)
+    if "floor_phase" not in logged and "floor_phase" in current:
+        logged["floor_phase"] = None if current["floor_phase"] is None else 0.0
     defaults = _path_settings(FitSettings())
     settings = dict(logged.get("settings", {}))
     for key, value in current["settings"].items():
@@ -197,7 +201,8 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
     # What the optimizer's path depends on (not the uncertainty options, nor the iteration budget, which a
     # resumed fit may extend): a log is resumed only with these.
     fit_settings = _path_settings(settings)
-    fingerprint = dict(data=_data_fingerprint(data), settings=fit_settings, dx=problem.dx)
+    fingerprint = dict(data=_data_fingerprint(data), settings=fit_settings, dx=problem.dx,
+                       floor_phase=problem.floor_phase)
     fitlog = None
     if log is not None:
         fitlog = optim.FitLog(log)
@@ -313,7 +318,7 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
         notes = tuple(notes) + (f"The time budget ({settings.time_budget:.4g} s) {' and '.join(said)}: the result is "
                                 f"the best point found so far. Continue with --resume (the fit log keeps every "
                                 f"iteration) and a new or no budget.",)
-    settings_out = dict(settings.to_dict(), dx=problem.dx, ppc=FIT_PPC[problem.scene.dim]
+    settings_out = dict(settings.to_dict(), dx=problem.dx, floor_phase=problem.floor_phase, ppc=FIT_PPC[problem.scene.dim]
                         if settings.ppc is None else int(settings.ppc),
                         dx_refit=dx_refit,
                         pixel_level=problem.pixel_level, pixel_size_fit=problem.cfg.pixel_size,

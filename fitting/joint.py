@@ -296,7 +296,7 @@ def calibrate_joint(datas, settings: FitSettings | None = None, *, log=None, res
                                    callback=on_iteration("start"), **kw)
 
     fingerprint = dict(data=[_data_fingerprint(pb.data) for pb in joint.problems], settings=_path_settings(settings),
-                       dx=[pb.dx for pb in joint.problems])
+                       dx=[pb.dx for pb in joint.problems], floor_phase=[pb.floor_phase for pb in joint.problems])
     fitlog = None
     if log is not None:
         fitlog = optim.FitLog(log)

@@ -244,6 +244,14 @@ class CalibrationProblem:
         return self
 
     @property
+    def floor_phase(self) -> float | None:
+        """Cells from the grid's node row below the floor up to the floor, in [0, 1); None without a floor."""
+        if self.scene.floor_y is None:
+            return None
+        k = (float(self.scene.floor_y) - float(self.sim.model.grid.origin[1])) / self.dx
+        return float(round(k - math.floor(k + 1e-9), 9)) % 1.0
+
+    @property
     def devices(self) -> int:
         """The number of devices the batched evaluations are split over."""
         return 1 if self.mesh is None else int(self.mesh.size)
@@ -420,6 +428,20 @@ def fit_grid(scene: Scene, settings: FitSettings) -> tuple[float, int]:
     return dx, FIT_PPC[scene.dim] if settings.ppc is None else int(settings.ppc)
 
 
+def phased_scene(scene: Scene, dx: float, phase: float) -> Scene:
+    """`scene` with its domain extended below so that on a grid of spacing dx (m) its floor lies `phase`
+    cells above a node row (rows at domain min + k dx). Scenes without a floor are returned as is."""
+    if scene.floor_y is None:
+        return scene
+    now = (float(scene.floor_y) - float(scene.domain_min[1])) / dx
+    extend = (phase - (now - math.floor(now + 1e-9))) % 1.0
+    if extend < 1e-9 or extend > 1.0 - 1e-9:
+        return scene
+    lo = list(scene.domain_min)
+    lo[1] = float(lo[1]) - extend * dx
+    return dataclasses.replace(scene, domain_min=tuple(lo))
+
+
 def build_problem(data: Silhouettes, settings: FitSettings | None = None, *,
                   max_particles: int = DEFAULT_MAX_PARTICLES,
                   max_substeps: int = DEFAULT_MAX_SUBSTEPS, adjoint=DEFAULT_JACOBIAN) -> CalibrationProblem:
@@ -439,6 +461,7 @@ def build_problem(data: Silhouettes, settings: FitSettings | None = None, *,
     scene: Scene = data.load_scene(dtype=dtype)
     d = scene.dim
     dx, ppc = fit_grid(scene, settings)
+    scene = phased_scene(scene, dx, float(settings.floor_phase))
     fixed = dict(settings.fixed)
     kappa = float(fixed.get("kappa", scene.kappa))
     rho = float(fixed.get("rho", scene.density))

@@ -39,7 +39,7 @@ def test_from_fit_refuses_a_fit_with_other_settings(tmp_path):
 
     from experiments.reference_fits import DATA, record_from_fit
     fit = json.loads(GPU_FIT.read_text())
-    for field, value in (("starts", 2), ("dx", 0.004), ("time_window", [0.0, 0.5])):
+    for field, value in (("starts", 2), ("dx", 0.004), ("time_window", [0.0, 0.5]), ("floor_phase", 0.5)):
         changed = json.loads(json.dumps(fit))
         changed["settings"][field] = value
         path = tmp_path / f"{field}.json"
