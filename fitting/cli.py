@@ -462,6 +462,8 @@ def add_design_parser(subparsers) -> argparse.ArgumentParser:
     ap.add_argument("--pixel-size", type=positive_float, default=None, help="m per pixel unless varied (default dx / 2)")
     ap.add_argument("--dx", type=positive_float, default=None, help="grid spacing of the predicted fits, m (default: the fit's)")
     ap.add_argument("--ppc", type=int_at_least(1), default=None, help="particles per cell (default: the fit's)")
+    ap.add_argument("--floor-phase", type=float_in(0.0, 1.0, hi_open=True, unit="cells"), default=0.0,
+                    help="the predicted fits' --floor-phase (default 0: a node row on the floor)")
     ap.add_argument("--fix", default=None, help="known values, e.g. m=1 (that parameter is not predicted)")
     ap.add_argument("--seed", type=int_at_least(0), default=0, help="seed of particle sampling and pixel noise")
     ap.add_argument("--dtype", choices=("float32", "float64"), default=FIT_DTYPE)
@@ -489,8 +491,8 @@ def run_design(args) -> int:
         check_output(path, option, inputs)
     guess = parse_params(args.guess)
     variables = [parse_vary(v, args.levels) for v in args.vary]
-    settings = FitSettings(dx=args.dx, ppc=args.ppc, fixed=parse_fixed(args.fix), seed=args.seed,
-                           dtype=args.dtype, dx_check=False).validate()
+    settings = FitSettings(dx=args.dx, ppc=args.ppc, floor_phase=args.floor_phase, fixed=parse_fixed(args.fix),
+                           seed=args.seed, dtype=args.dtype, dx_check=False).validate()
     plots = not args.no_plots
     if plots and missing_modules("matplotlib"):
         print("jaxfoam design: note: matplotlib is not installed, so the chart is skipped (install the viz "

@@ -84,3 +84,13 @@ def test_a_log_of_another_floor_phase_is_not_resumed(tmp_path):
     old["settings"] = {k: v for k, v in old["settings"].items() if k != "floor_phase"}
     assert _same_fit(old, logged)
     assert not _same_fit(old, dict(logged, floor_phase=0.5))
+
+
+@pytest.mark.parametrize("command", [["fit", "data.h5", "--out", "fit.json"], ["design", "scene.json"]])
+def test_command_line_refuses_a_floor_phase_outside_a_cell(command, capsys):
+    """`jaxfoam fit` and `jaxfoam design` refuse --floor-phase 1.5 before reading any file (exit 2)."""
+    from jaxfoam.cli import main
+    with pytest.raises(SystemExit) as exc:
+        main(command + ["--floor-phase", "1.5"])
+    assert exc.value.code == 2
+    assert "argument --floor-phase: must be a finite number in [0, 1) cells, got '1.5'" in capsys.readouterr().err
