@@ -10,13 +10,18 @@ distance (`fitting.silhouette_mismatch`). Then the silhouettes of the four phase
 occupancies, per pixel) and scored the same way: what a phase-averaged model would reach at 4x the
 cost, next to one grid at dx / 2 (8x the cost in 2D; `reference_bias.md`).
 
-Usage: python -m experiments grid_phase [--quick] [--report]   (quick: set 0 of each scene)
+With --refine (the full record must exist; it is extended): for the files with a Coulomb floor, the
+fitter's `floor_phase` 0 and 0.5 each on the default dx, dx / sqrt(2) and dx / 2: whether the phase that
+helps on the default grid keeps helping as the grid is refined, and the silhouettes' observed order.
+
+Usage: python -m experiments grid_phase [--quick] [--report] [--refine]   (quick: set 0 of each scene)
 Writes experiments/results/grid_phase[_quick].md and .json. SI units.
 """
 from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -77,6 +82,54 @@ def evaluate(path: Path) -> dict:
                                                                     boundary_mean=float(np.mean(boundary))))
 
 
+REFINE_PHASES = (0.0, 0.5)  # the fitter's default and the half-cell phase of `jaxfoam fit --floor-phase`
+REFINEMENTS = (1.0, math.sqrt(2.0), 2.0)  # default dx / dx
+
+
+def refined(path: Path) -> dict:
+    """Loss and mismatch at the truth for each of REFINE_PHASES on each of REFINEMENTS's grids."""
+    data = read_silhouettes(path)
+    dx0 = build_problem(data, FitSettings(starts=1, dx_check=False)).dx
+    rows = []
+    for ph in REFINE_PHASES:
+        for k in REFINEMENTS:
+            problem = build_problem(data, FitSettings(dx=dx0 / k, floor_phase=ph, starts=1, dx_check=False))
+            truth = {n: float(data.truth[n]) for n in problem.transform.names}
+            t0 = time.perf_counter()
+            r = np.asarray(problem.residual(problem.transform.to_unconstrained(truth)))
+            img = np.asarray(problem.render(truth))
+            wall = time.perf_counter() - t0
+            iou, boundary = silhouette_mismatch(img, problem.masks, problem.weights, problem.cfg.pixel_size)
+            rows.append(dict(floor_phase=ph, refine=k, dx=problem.dx, loss=0.5 * float(r @ r),
+                             iou_min=float(np.min(iou)), boundary_mean=float(np.mean(boundary)), wall=wall))
+            print(f"{path.name} floor_phase {ph} dx {problem.dx * 1e3:.2f} mm: loss {rows[-1]['loss']:.4g}, "
+                  f"boundary {rows[-1]['boundary_mean'] * 1e3:.2f} mm, {wall:.0f} s", flush=True)
+    return dict(file=path.name, rows=rows)
+
+
+def refined_section(files: list[dict]) -> str:
+    head = ["file", "floor phase (cells)", "dx (mm)", "loss at truth", "IoU min", "boundary mean (mm)", "rollout (s)"]
+    table = [[f["file"], f"{r['floor_phase']:g}", f"{r['dx'] * 1e3:.2f}", f"{r['loss']:.4g}", f"{r['iou_min']:.3f}",
+              f"{r['boundary_mean'] * 1e3:.2f}", f"{r['wall']:.0f}"] for f in files for r in f["rows"]]
+    lines = []
+    for fam in sorted({f["file"].split("_2d")[0] for f in files}):
+        sel = [f for f in files if f["file"].startswith(fam)]
+        for ph in REFINE_PHASES:
+            b = [np.mean([r["boundary_mean"] for f in sel for r in f["rows"] if r["floor_phase"] == ph
+                          and r["refine"] == k]) * 1e3 for k in REFINEMENTS]
+            order = math.log(b[0] / b[-1]) / math.log(REFINEMENTS[-1]) if b[-1] > 0 else float("nan")
+            lines.append(f"- {fam}, floor phase {ph:g}: mean boundary distance " + ", ".join(f"{v:.2f}" for v in b)
+                         + f" mm at the three grids (observed order {order:.2f} in dx).")
+        wins = sum(all(r0["loss"] > r5["loss"] for r0, r5 in zip(
+            [r for r in f["rows"] if r["floor_phase"] == 0.0], [r for r in f["rows"] if r["floor_phase"] == 0.5]))
+            for f in sel)
+        lines.append(f"- {fam}: floor phase 0.5 has the lower loss at the truth on all three grids in {wins} of "
+                     f"{len(sel)} files.")
+    return ("\n## The floor's phase as the grid is refined\n\nFiles with a Coulomb floor; the fitter's problem "
+            "(`FitSettings(floor_phase=...)`, every other setting default) at the truth on the default dx, "
+            "dx / sqrt(2) and dx / 2.\n\n" + C.md_table(head, table) + "\n" + "\n".join(lines) + "\n")
+
+
 def page(rec: dict, quick: bool) -> None:
     head = ["file", "dx (mm)", "lattice shift (cells)", "floor above its node row (cells)",
             "plate face below its node row (cells)", "loss at truth", "IoU min", "boundary mean (mm)", "rollout (s)"]
@@ -98,6 +151,8 @@ def page(rec: dict, quick: bool) -> None:
     body = ("The fitter's problem at each file's /truth on the default grid, its node lattice shifted along y "
             "(the scene's domain extended below). Last row per file: the four phases' soft silhouettes averaged.\n\n"
             + C.md_table(head, table) + "\n" + "\n".join(summary) + "\n")
+    if rec.get("refined"):
+        body += refined_section(rec["refined"])
     C.write_md(NAME, quick, "The grid's phase against its spacing, at the true parameters", body, stamp=rec["stamp"])
 
 
@@ -109,6 +164,14 @@ def main(argv=None) -> int:
         page(json.loads(path.read_text()), quick)
         return 0
     jax.config.update("jax_enable_x64", True)
+    if "--refine" in argv:
+        rec = json.loads(path.read_text())
+        files = [p for p in sorted(DATA.glob("*_2d_set*.h5")) if p.name.startswith(("drop", "hanging"))]
+        rec["refined"] = [refined(p) for p in files]
+        with atomic_output(path) as tmp:
+            Path(tmp).write_text(json.dumps(rec, indent=1))
+        page(rec, quick)
+        return 0
     pattern = "*_2d_set0.h5" if quick else "*_2d_set*.h5"
     files = [p for p in sorted(DATA.glob(pattern)) if p.name.startswith(("drop", "hanging", "squeeze"))]
     rec = dict(files=[evaluate(p) for p in files], stamp=C.machine_line())
