@@ -50,7 +50,7 @@ def phase_records(phase: float) -> Path:
 
 def fit_one(path: Path, settings: FitSettings) -> dict:
     """Fit one reference file with `settings` (resuming its log); the record of the result."""
-    logs = LOGS if settings.floor_phase == 0.0 else LOGS.with_name(phase_records(settings.floor_phase).name)
+    logs = LOGS if settings.floor_phase is None else LOGS.with_name(phase_records(settings.floor_phase).name)
     logs.mkdir(parents=True, exist_ok=True)
     log = logs / f"{path.stem}.fitlog.h5"
     data = read_silhouettes(path)

@@ -183,9 +183,9 @@ def add_fit_parser(subparsers) -> argparse.ArgumentParser:
                          f"/ {FIT_CELLS[3]} in 3D)")
     ap.add_argument("--ppc", type=int_at_least(1), default=None,
                     help=f"particles per cell (default {FIT_PPC[2]} in 2D, {FIT_PPC[3]} in 3D)")
-    ap.add_argument("--floor-phase", type=float_in(0.0, 1.0, hi_open=True, unit="cells"), default=0.0,
-                    help="cells from the node row below the floor up to the floor on the fit's grid (default 0: "
-                         "a row on the floor)")
+    ap.add_argument("--floor-phase", type=float_in(0.0, 1.0, hi_open=True, unit="cells"), default=None,
+                    help="cells from the node row below the floor up to the floor on the fit's grid (default: rows "
+                         "at the domain's lower bound + k dx, so a floor there lies on a row)")
     ap.add_argument("--optimizer", choices=OPTIMIZERS, default="lm", help="default lm (Levenberg-Marquardt)")
     ap.add_argument("--fix", default=None,
                     help="hold parameters fixed, e.g. m=0.5,eta=10; kappa=.. or rho=.. override the scene's values")
@@ -462,8 +462,8 @@ def add_design_parser(subparsers) -> argparse.ArgumentParser:
     ap.add_argument("--pixel-size", type=positive_float, default=None, help="m per pixel unless varied (default dx / 2)")
     ap.add_argument("--dx", type=positive_float, default=None, help="grid spacing of the predicted fits, m (default: the fit's)")
     ap.add_argument("--ppc", type=int_at_least(1), default=None, help="particles per cell (default: the fit's)")
-    ap.add_argument("--floor-phase", type=float_in(0.0, 1.0, hi_open=True, unit="cells"), default=0.0,
-                    help="the predicted fits' --floor-phase (default 0: a node row on the floor)")
+    ap.add_argument("--floor-phase", type=float_in(0.0, 1.0, hi_open=True, unit="cells"), default=None,
+                    help="the predicted fits' --floor-phase (default: as the fit's)")
     ap.add_argument("--fix", default=None, help="known values, e.g. m=1 (that parameter is not predicted)")
     ap.add_argument("--seed", type=int_at_least(0), default=0, help="seed of particle sampling and pixel noise")
     ap.add_argument("--dtype", choices=("float32", "float64"), default=FIT_DTYPE)

@@ -115,11 +115,11 @@ def _same_fit(logged: dict, fingerprint: dict) -> bool:
     """Whether a fit log's fingerprint (data, path settings, dx, floor phase) is this fit's. A setting that
     did not exist when the log was written matches when this fit leaves it at its default, which is the
     behaviour the log's version had (e.g. `resample` and `fracture`, off); a log without a floor phase
-    had a node row on the floor."""
+    had the domain's rows, which the default `floor_phase` gives."""
     current = json.loads(json.dumps(fingerprint))
     logged = dict(logged)
     if "floor_phase" not in logged and "floor_phase" in current:
-        logged["floor_phase"] = None if current["floor_phase"] is None else 0.0
+        logged["floor_phase"] = current["floor_phase"]  # the settings then match only at floor_phase None
     defaults = _path_settings(FitSettings())
     settings = dict(logged.get("settings", {}))
     for key, value in current["settings"].items():

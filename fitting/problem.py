@@ -461,7 +461,8 @@ def build_problem(data: Silhouettes, settings: FitSettings | None = None, *,
     scene: Scene = data.load_scene(dtype=dtype)
     d = scene.dim
     dx, ppc = fit_grid(scene, settings)
-    scene = phased_scene(scene, dx, float(settings.floor_phase))
+    if settings.floor_phase is not None:
+        scene = phased_scene(scene, dx, float(settings.floor_phase))
     fixed = dict(settings.fixed)
     kappa = float(fixed.get("kappa", scene.kappa))
     rho = float(fixed.get("rho", scene.density))

@@ -95,8 +95,9 @@ class FitSettings:
       dx: grid spacing of the fit, m (None: the largest domain extent / FIT_CELLS: 64 in 2D, 32 in 3D).
       ppc: particles per cell (None: FIT_PPC: 4 in 2D, 8 in 3D).
       floor_phase: where the fit grid's node rows lie against the scene's floor: the floor is this many
-        cells above the row below it, in [0, 1) (the domain is extended below to place them); 0: a row on
-        the floor, as `jaxfoam simulate` and `synthesize` place it. Ignored without a floor.
+        cells above the row below it, in [0, 1) (the domain is extended below to place them). None: the
+        rows at the domain's lower bound + k dx, as `jaxfoam simulate` and `synthesize` place them (a floor
+        at that bound lies on a row). Ignored without a floor.
       optimizer: "lm" (Levenberg-Marquardt), "lbfgs" or "adam".
       fixed: name -> value: fitted parameters held fixed (mu, sigma_y, eta, m), or overrides of the
         scene's known inputs kappa (Pa) and rho (kg/m^3).
@@ -156,7 +157,7 @@ class FitSettings:
 
     dx: float | None = None
     ppc: int | None = None
-    floor_phase: float = 0.0
+    floor_phase: float | None = None
     optimizer: str = "lm"
     fixed: Mapping = dataclasses.field(default_factory=dict)
     bounds: Mapping = dataclasses.field(default_factory=dict)
@@ -193,9 +194,10 @@ class FitSettings:
             raise CalibrationError(f"dx must be a positive grid spacing in m, got {self.dx!r}")
         if self.ppc is not None and int(self.ppc) < 1:
             raise CalibrationError(f"ppc must be >= 1, got {self.ppc!r}")
-        if isinstance(self.floor_phase, bool) or not (isinstance(self.floor_phase, (int, float))
-                                                      and 0.0 <= self.floor_phase < 1.0):
-            raise CalibrationError(f"floor_phase must be a fraction of a cell in [0, 1), got {self.floor_phase!r}")
+        if self.floor_phase is not None and (isinstance(self.floor_phase, bool) or not (
+                isinstance(self.floor_phase, (int, float)) and 0.0 <= self.floor_phase < 1.0)):
+            raise CalibrationError(f"floor_phase must be None or a fraction of a cell in [0, 1), got "
+                                   f"{self.floor_phase!r}")
         if self.dx_refit is not None and (isinstance(self.dx_refit, bool) or int(self.dx_refit) != self.dx_refit
                                           or self.dx_refit < 0):
             raise CalibrationError(f"dx_refit must be a whole number of iterations >= 0, got {self.dx_refit!r}")
