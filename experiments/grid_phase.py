@@ -19,7 +19,6 @@ Writes experiments/results/grid_phase[_quick].md and .json. SI units.
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import sys
@@ -38,45 +37,44 @@ PHASES = (0.0, 0.25, 0.5, 0.75)  # cells the node lattice moves down along y
 NAME = "grid_phase"
 
 
-def shifted(data, cells: float, dx: float):
-    """The data with the scene's domain extended down by `cells` grid cells (the lattice moves with it)."""
-    spec = json.loads(data.scene_json)
-    spec["domain"]["min"][1] -= cells * dx
-    return dataclasses.replace(data, scene_json=json.dumps(spec))
-
-
-def row_offset(spec: dict, y: float, dx: float) -> float:
-    """Cells from the highest node row at or below height y up to y (grid origin domain min - 3 dx)."""
-    origin = spec["domain"]["min"][1] - 3 * dx
+def row_offset(origin: float, y: float, dx: float) -> float:
+    """Cells from the highest node row at or below height y up to y (rows at origin + k dx)."""
     k = np.floor((y - origin) / dx + 1e-9)
     return float((y - origin) / dx - k)
+
+
+def at_truth(data, settings: FitSettings):
+    """The fitter's problem for `settings` at the data's /truth: (problem, soft silhouettes, row of loss,
+    worst-frame IoU, mean boundary distance and rollout wall time)."""
+    problem = build_problem(data, settings)
+    truth = {n: float(data.truth[n]) for n in problem.transform.names}
+    t0 = time.perf_counter()
+    r = np.asarray(problem.residual(problem.transform.to_unconstrained(truth)))
+    img = np.asarray(problem.render(truth))
+    wall = time.perf_counter() - t0
+    iou, boundary = silhouette_mismatch(img, problem.masks, problem.weights, problem.cfg.pixel_size)
+    return problem, img, dict(loss=0.5 * float(r @ r), iou_min=float(np.min(iou)),
+                              boundary_mean=float(np.mean(boundary)), wall=wall)
 
 
 def evaluate(path: Path) -> dict:
     data = read_silhouettes(path)
     dx = build_problem(data, FitSettings(starts=1, dx_check=False)).dx
+    spec = json.loads(data.scene_json)
     rows, renders, masks = [], [], None
     for ph in PHASES:
-        d = shifted(data, ph, dx)
-        spec = json.loads(d.scene_json)
-        problem = build_problem(d, FitSettings(dx=dx, starts=1, dx_check=False))
-        truth = {n: float(data.truth[n]) for n in problem.transform.names}
-        t0 = time.perf_counter()
-        r = np.asarray(problem.residual(problem.transform.to_unconstrained(truth)))
-        img = np.asarray(problem.render(truth))
-        wall = time.perf_counter() - t0
-        iou, boundary = silhouette_mismatch(img, problem.masks, problem.weights, problem.cfg.pixel_size)
+        # the lattice moved down by ph cells: the floor (at the domain's lower bound) ph cells above a row
+        problem, img, row = at_truth(data, FitSettings(dx=dx, floor_phase=ph, starts=1, dx_check=False))
         renders.append(img)
         masks = (problem.masks, problem.weights, problem.cfg.pixel_size)
+        origin = float(problem.sim.model.grid.origin[1])
         floor = spec.get("floor", {}).get("y")
         face = spec["plate"]["center"][1] - spec["plate"]["half_size"][1] if "plate" in spec else None
-        rows.append(dict(phase=ph, loss=0.5 * float(r @ r), iou_min=float(np.min(iou)),
-                         boundary_mean=float(np.mean(boundary)),
-                         floor_above_row=None if floor is None else row_offset(spec, floor, dx),
-                         face_below_row=None if face is None else (1.0 - row_offset(spec, face, dx)) % 1.0,
-                         wall=wall))
-        print(f"{path.name} phase {ph}: loss {rows[-1]['loss']:.4g}, IoU min {rows[-1]['iou_min']:.3f}, "
-              f"boundary {rows[-1]['boundary_mean'] * 1e3:.2f} mm, {wall:.0f} s", flush=True)
+        rows.append(dict(phase=ph, **row,
+                         floor_above_row=None if floor is None else row_offset(origin, floor, dx),
+                         face_below_row=None if face is None else (1.0 - row_offset(origin, face, dx)) % 1.0))
+        print(f"{path.name} phase {ph}: loss {row['loss']:.4g}, IoU min {row['iou_min']:.3f}, "
+              f"boundary {row['boundary_mean'] * 1e3:.2f} mm, {row['wall']:.0f} s", flush=True)
     iou, boundary = silhouette_mismatch(np.mean(renders, axis=0), *masks)
     return dict(file=path.name, dx=dx, phases=rows, averaged=dict(iou_min=float(np.min(iou)),
                                                                     boundary_mean=float(np.mean(boundary))))
@@ -93,17 +91,10 @@ def refined(path: Path) -> dict:
     rows = []
     for ph in REFINE_PHASES:
         for k in REFINEMENTS:
-            problem = build_problem(data, FitSettings(dx=dx0 / k, floor_phase=ph, starts=1, dx_check=False))
-            truth = {n: float(data.truth[n]) for n in problem.transform.names}
-            t0 = time.perf_counter()
-            r = np.asarray(problem.residual(problem.transform.to_unconstrained(truth)))
-            img = np.asarray(problem.render(truth))
-            wall = time.perf_counter() - t0
-            iou, boundary = silhouette_mismatch(img, problem.masks, problem.weights, problem.cfg.pixel_size)
-            rows.append(dict(floor_phase=ph, refine=k, dx=problem.dx, loss=0.5 * float(r @ r),
-                             iou_min=float(np.min(iou)), boundary_mean=float(np.mean(boundary)), wall=wall))
-            print(f"{path.name} floor_phase {ph} dx {problem.dx * 1e3:.2f} mm: loss {rows[-1]['loss']:.4g}, "
-                  f"boundary {rows[-1]['boundary_mean'] * 1e3:.2f} mm, {wall:.0f} s", flush=True)
+            problem, _, row = at_truth(data, FitSettings(dx=dx0 / k, floor_phase=ph, starts=1, dx_check=False))
+            rows.append(dict(floor_phase=ph, refine=k, dx=problem.dx, **row))
+            print(f"{path.name} floor_phase {ph} dx {problem.dx * 1e3:.2f} mm: loss {row['loss']:.4g}, "
+                  f"boundary {row['boundary_mean'] * 1e3:.2f} mm, {row['wall']:.0f} s", flush=True)
     return dict(file=path.name, rows=rows)
 
 
