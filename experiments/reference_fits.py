@@ -87,8 +87,8 @@ def record_from_fit(path: Path, fit_json: Path) -> dict:
     checks = [("dx", got["dx"], float(problem.dx)), ("ppc", got["ppc"], fit_grid(problem.scene, settings)[1]),
               ("max_iter", got["max_iter"], DEFAULT_MAX_ITER[settings.optimizer]),
               ("dx_refit", got["dx_refit"], DEFAULT_DX_REFIT[dim]),
-              # fits written before floor_phase existed had a node row on the floor
-              ("floor_phase", got.get("floor_phase", None if problem.floor_phase is None else 0.0), problem.floor_phase)]
+              # fits written before floor_phase existed had the domain's rows, as the default has
+              ("floor_phase", got.get("floor_phase", problem.floor_phase), problem.floor_phase)]
     checks += [(k, got[k], default[k]) for k in _DEFAULT_FIELDS]
     checks += [("bounds", got["bounds"], {n: list(DEFAULT_BOUNDS[n]) for n in problem.transform.names}),
                ("data.frames_used", len(fit["data"]["frames_used"]), len(data.times) - 1),
@@ -216,7 +216,8 @@ def main(argv=None) -> int:
         if out.exists():
             continue
         where.mkdir(parents=True, exist_ok=True)
-        print(f"fitting {path.name} with floor_phase {settings.floor_phase:g}, every other setting default", flush=True)
+        print(f"fitting {path.name} with the default settings" + ("" if settings.floor_phase is None else
+              f" but floor_phase {settings.floor_phase:g}"), flush=True)
         record = fit_one(path, settings)
         write_record(out, record)
         print(f"  {record['params']} in {record['wall'] / 60:.1f} min; loss at truth / fit "
