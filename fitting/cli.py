@@ -24,7 +24,8 @@ from jaxfoam.resample import ResampleConfig
 
 from . import optim
 from .io import read_silhouettes
-from .settings import (CalibrationError, DEFAULT_BOUNDS, DEFAULT_DX_REFIT, DEFAULT_MAX_ITER, DEFAULT_STARTS, FIT_CELLS,
+from .settings import (CalibrationError, DEFAULT_BOUNDS, DEFAULT_BROYDEN_STEPS, DEFAULT_DX_REFIT, DEFAULT_MAX_ITER,
+                       DEFAULT_STARTS, FIT_CELLS,
                        FIT_DTYPE, FIT_PPC, FitSettings, KNOWN_INPUTS, NUISANCE_FIELDS, OPTIMIZERS)
 from .problem import build_problem
 from .driver import calibrate, default_log_path
@@ -201,6 +202,10 @@ def add_fit_parser(subparsers) -> argparse.ArgumentParser:
     ap.add_argument("--max-iter", type=int_at_least(0), default=None,
                     help="iterations per start (default " + ", ".join(f"{k} {v}" for k, v in DEFAULT_MAX_ITER.items())
                     + ")")
+    ap.add_argument("--broyden-steps", type=int_at_least(0), default=None, metavar="K",
+                    help="lm: trials evaluate the residuals alone and the Jacobian is updated by Broyden's rule, "
+                         "evaluated exactly every K accepted steps, after a rejected trial and before stopping; "
+                         f"0: the exact Jacobian at every trial (default {DEFAULT_BROYDEN_STEPS}; starts in turn only)")
     ap.add_argument("--time-window", default=None, metavar="T_LO:T_HI",
                     help="fit only the frames with times in [T_LO, T_HI] s, e.g. 0:0.8 (default: all)")
     ap.add_argument("--time-budget", default=None, metavar="DURATION",
@@ -256,6 +261,8 @@ def settings_from_args(args) -> FitSettings:
     return FitSettings(dx=args.dx, ppc=args.ppc, floor_phase=args.floor_phase, optimizer=args.optimizer, fixed=fixed,
                        bounds=parse_bounds(args.bounds), starts=args.starts, fit_also=fit_also,
                        initial=parse_start(getattr(args, "start", None), fixed, fit_also), max_iter=args.max_iter,
+                       broyden_steps=(DEFAULT_BROYDEN_STEPS if getattr(args, "broyden_steps", None) is None
+                                      else args.broyden_steps),
                        time_budget=parse_duration(getattr(args, "time_budget", None)),
                        time_window=parse_window(getattr(args, "time_window", None)), seed=args.seed,
                        pixel_level=args.pixel_level, dtype=args.dtype,

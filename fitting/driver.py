@@ -63,10 +63,10 @@ def use_population(settings: FitSettings, problem) -> bool:
     return True
 
 
-def make_optimizer(name: str):
-    """The `fitting` optimizer for "lm", "lbfgs" or "adam"."""
+def make_optimizer(name: str, broyden_steps: int = 0):
+    """The `fitting` optimizer for "lm", "lbfgs" or "adam" (`broyden_steps`: LM's, see FitSettings)."""
     if name == "lm":
-        return optim.LevenbergMarquardt()
+        return optim.LevenbergMarquardt(broyden_steps=int(broyden_steps))
     if name == "lbfgs":
         return optim.LBFGS()
     if name == "adam":
@@ -111,19 +111,24 @@ def _path_settings(settings: FitSettings) -> dict:
                                                "population", "devices")}))
 
 
+# What a path setting was in logs written before it existed, where today's default differs.
+_LEGACY_SETTINGS = {"broyden_steps": 0}
+
+
 def _same_fit(logged: dict, fingerprint: dict) -> bool:
     """Whether a fit log's fingerprint (data, path settings, dx, floor phase) is this fit's. A setting that
-    did not exist when the log was written matches when this fit leaves it at its default, which is the
-    behaviour the log's version had (e.g. `resample` and `fracture`, off); a log without a floor phase
+    did not exist when the log was written matches when this fit gives it the behaviour the log's version
+    had: its default (e.g. `resample` and `fracture`, off), or `_LEGACY_SETTINGS`'s value (exact
+    Jacobians, `broyden_steps` 0); a log without a floor phase
     had the domain's rows, which the default `floor_phase` gives."""
     current = json.loads(json.dumps(fingerprint))
     logged = dict(logged)
     if "floor_phase" not in logged and "floor_phase" in current:
         logged["floor_phase"] = current["floor_phase"]  # the settings then match only at floor_phase None
-    defaults = _path_settings(FitSettings())
+    before = {**_path_settings(FitSettings()), **_LEGACY_SETTINGS}
     settings = dict(logged.get("settings", {}))
     for key, value in current["settings"].items():
-        if key not in settings and value == defaults.get(key, object()):
+        if key not in settings and value == before.get(key, object()):
             settings[key] = value
     return dict(logged, settings=settings) == current
 
@@ -175,7 +180,7 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
         + ("; fracture on" if sim.fracture else ""))
 
     starts, unit = make_starts(tr, settings)
-    optimizer = make_optimizer(settings.optimizer)
+    optimizer = make_optimizer(settings.optimizer, settings.broyden_steps)
     n_starts = len(starts)
     population = None
     if n_starts > 1 and use_population(settings, problem):
@@ -196,6 +201,7 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
 
     def solve(x0, **kw):
         return optim.least_squares(evaluate, x0, optimizer, with_jac=True, max_iterations=settings.iterations,
+                                     residual=problem.residual if population is None else None,
                                      ftol=FTOL, xtol=XTOL, callback=on_iteration, **kw)
 
     # What the optimizer's path depends on (not the uncertainty options, nor the iteration budget, which a

@@ -106,6 +106,11 @@ class JointProblem:
     def residual_and_jacobian(self, z):
         return self.stack(self.parts(z))
 
+    def residual(self, z):
+        """The stacked, noise-scaled residual (n,) alone (as `residual_and_jacobian`'s first part)."""
+        return np.concatenate([np.asarray(pb.residual(jnp.asarray(zi, pb.sim.dtype)), np.float64) / s
+                               for pb, zi, s in zip(self.problems, self.split(z), self.scales)])
+
     def residual_and_jacobian_batch(self, Z):
         """(R (B, n), J (B, n, P)) at B joint points: each recording's batch as one batched program
         (`CalibrationProblem.residual_and_jacobian_batch`), stacked per point."""
@@ -275,7 +280,7 @@ def calibrate_joint(datas, settings: FitSettings | None = None, *, log=None, res
         starts.append(full)
     starts = np.stack(starts)
     unit = np.concatenate([unit, np.full((len(starts), len(names) - unit.shape[1]), np.nan)], axis=1)
-    optimizer = make_optimizer(settings.optimizer)
+    optimizer = make_optimizer(settings.optimizer, settings.broyden_steps)
     population = None
     if len(starts) > 1 and use_population(settings, joint):
         population = optim.BatchOracle(joint.residual_and_jacobian_batch, len(starts), sizes=(1, len(starts)))
@@ -292,6 +297,7 @@ def calibrate_joint(datas, settings: FitSettings | None = None, *, log=None, res
 
     def solve(x0, **kw):
         return optim.least_squares(evaluate, x0, optimizer, with_jac=True,
+                                   residual=joint.residual if population is None else None,
                                    max_iterations=settings.iterations, ftol=FTOL, xtol=XTOL,
                                    callback=on_iteration("start"), **kw)
 
@@ -318,7 +324,7 @@ def calibrate_joint(datas, settings: FitSettings | None = None, *, log=None, res
         spent = time.perf_counter() - wall0
         budget = {} if settings.time_budget is None else {"max_time": max(1e-9, settings.time_budget - spent)}
         stage2 = optim.least_squares(joint.residual_and_jacobian, z1, optimizer, with_jac=True,
-                                     max_iterations=REWEIGHT_ITERATIONS, ftol=FTOL, xtol=XTOL,
+                                     residual=joint.residual, max_iterations=REWEIGHT_ITERATIONS, ftol=FTOL, xtol=XTOL,
                                      callback=on_iteration("scaled"), log=fitlog, run=len(starts), resume=resume,
                                      seed=settings.seed, **budget)
     finally:

@@ -38,6 +38,9 @@ ADAM_DECAY = 50.0
 FTOL = 1e-7
 XTOL = 1e-6
 DEFAULT_STARTS = 3
+# LM's Jacobian: 0 evaluates (r, J) at every trial; k > 0 Broyden-updates J between exact ones, every k
+# accepted steps (`fitting.optim.LevenbergMarquardt.broyden_steps`).
+DEFAULT_BROYDEN_STEPS = 0
 # Goodness of fit: frames whose fitted and observed boundaries are on average more than this many
 # particle spacings apart are a misfit the discretization does not explain (docs/calibrate.md, "The defaults and why").
 FRAME_BOUNDARY_SPACINGS = 1.0
@@ -109,6 +112,10 @@ class FitSettings:
         their start ranges, and starts after the first are the Latin-hypercube points as usual. None: the
         centre of the start ranges. Each value must lie within its bounds (one on a bound starts just inside).
       max_iter: accepted iterations per start (None: DEFAULT_MAX_ITER of the optimizer).
+      broyden_steps: Levenberg-Marquardt's trials evaluate the residuals alone and update the Jacobian by
+        Broyden's rule, evaluating it exactly every this many accepted steps, after a rejected trial and
+        before stopping (0: (r, J) at every trial). Sequential starts only: a population evaluates exact
+        Jacobians. The intervals always use the exact Jacobian at the optimum.
       time_window: (t_lo, t_hi), s: fit only the frames whose times lie in it (None: every frame after the
         start); the rollouts then stop at the last of them. For data whose late phase the model (or a
         coarse grid) does not resolve, e.g. foam tearing off a plate.
@@ -165,6 +172,7 @@ class FitSettings:
     starts: int = DEFAULT_STARTS
     initial: Mapping | None = None
     max_iter: int | None = None
+    broyden_steps: int = DEFAULT_BROYDEN_STEPS
     time_budget: float | None = None
     time_window: tuple | None = None
     population: bool | None = None
@@ -238,6 +246,9 @@ class FitSettings:
                 raise CalibrationError(f"initial: {name} must be a number, got {value!r}") from None
             if not (math.isfinite(v) and lo <= v <= hi):
                 raise CalibrationError(f"initial: {name} = {value!r} must lie within its bounds [{lo:g}, {hi:g}]")
+        if isinstance(self.broyden_steps, bool) or not isinstance(self.broyden_steps, int) \
+                or self.broyden_steps < 0:
+            raise CalibrationError(f"broyden_steps must be an integer >= 0, got {self.broyden_steps!r}")
         if self.max_iter is not None and int(self.max_iter) < 0:
             raise CalibrationError(f"max_iter must be >= 0, got {self.max_iter!r}")
         if self.time_budget is not None and not (isinstance(self.time_budget, (int, float)) and

@@ -61,7 +61,9 @@ def state_arrays(state) -> dict:
 
 def state_from_arrays(state_type, arrays: dict):
     """Rebuild a state of `state_type` from `state_arrays` output (numpy arrays, dtypes kept)."""
-    names = [f.name for f in dataclasses.fields(state_type)]
+    fields = dataclasses.fields(state_type)
+    # a field added with a default since the log was written takes its default
+    names = [f.name for f in fields if f.name in arrays or f.default_factory is dataclasses.MISSING]
     missing = set(names) - set(arrays)
     if missing:
         raise ValueError(f"cannot rebuild {state_type.__name__}: fields {sorted(missing)} are missing")

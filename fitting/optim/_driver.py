@@ -29,16 +29,33 @@ class _BudgetExhausted(Exception):
 class _Oracle:
     """Counts evaluations, enforces the budget and maps any non-finite output to value = +inf."""
 
-    def __init__(self, evaluate, max_evaluations, evaluations=0, nonfinite=0):
+    def __init__(self, evaluate, max_evaluations, evaluations=0, nonfinite=0, residual=None):
         self.evaluate = evaluate
         self.max_evaluations = max_evaluations
         self.evaluations = int(evaluations)
         self.nonfinite = int(nonfinite)
+        self.jacobians = 0
+        if residual is not None:
+            self.residual = self._residual_only
+            self._residual = residual
 
-    def __call__(self, x):
+    def _count(self):
         if self.max_evaluations is not None and self.evaluations >= self.max_evaluations:
             raise _BudgetExhausted
         self.evaluations += 1
+
+    def _residual_only(self, x):
+        """r(x) alone (one evaluation; non-finite: inf)."""
+        self._count()
+        value = as_array(self._residual(x))
+        if not np.isfinite(np.asarray(value)).all():
+            self.nonfinite += 1
+            value = host(np.full(value.shape, np.inf, value.dtype))
+        return value
+
+    def __call__(self, x):
+        self._count()
+        self.jacobians += 1
         value, deriv = self.evaluate(x)
         value, deriv = as_array(value), as_array(deriv)
         if not (np.isfinite(np.asarray(value)).all() and np.isfinite(np.asarray(deriv)).all()):
@@ -144,13 +161,15 @@ def minimize(fn: Callable, x0, optimizer: AbstractOptimizer, *, with_grad: bool 
 
 
 def least_squares(fn: Callable, x0, optimizer: AbstractOptimizer | None = None, *, with_jac: bool = False,
-                  **kwargs) -> Solution:
+                  residual: Callable | None = None, **kwargs) -> Solution:
     """Minimize 0.5 * |r(x)|^2 with Levenberg-Marquardt (default) or any gradient optimizer.
 
     Args:
       fn: x (p,) -> residuals r (n,), or -> (r, J (n, p)) when with_jac is True (for instance a
         forward-mode rollout that returns both). Without with_jac, J comes from `value_and_jacfwd(fn)`.
       x0: (p,) starting point.
+      residual: x -> r alone, cheaper than fn, for optimizers that use it (`LevenbergMarquardt` with
+        `broyden_steps`); without with_jac, fn itself. Each call counts as an evaluation.
       optimizer: `LevenbergMarquardt()` by default; `Adam` and `LBFGS` run on the loss 0.5 |r|^2 with
         gradient J^T r.
       max_iterations: accepted iterations allowed (default 100).
@@ -176,12 +195,14 @@ def least_squares(fn: Callable, x0, optimizer: AbstractOptimizer | None = None, 
     """
     optimizer = LevenbergMarquardt() if optimizer is None else optimizer
     evaluate = fn if with_jac else value_and_jacfwd(fn)
-    return _iterate("least_squares", evaluate, x0, optimizer, **kwargs)
+    if residual is None and not with_jac:
+        residual = fn
+    return _iterate("least_squares", evaluate, x0, optimizer, residual=residual, **kwargs)
 
 
 def _iterate(kind, evaluate, x0, optimizer, *, max_iterations=100, max_evaluations=None, ftol=1e-10,
              xtol=1e-10, gtol=None, callback=None, log=None, run=0, resume=False, seed=None,
-             max_time=None) -> Solution:
+             max_time=None, residual=None) -> Solution:
     if not isinstance(optimizer, AbstractOptimizer):
         raise ValueError(f"optimizer must be a fitting optimizer (Adam, LBFGS, LevenbergMarquardt), got "
                          f"{optimizer!r}")
@@ -200,7 +221,7 @@ def _iterate(kind, evaluate, x0, optimizer, *, max_iterations=100, max_evaluatio
     fitlog = FitLog(log) if owns_log else log
     try:
         return _loop(kind, evaluate, x0, optimizer, meta, fitlog, int(run), bool(resume), seed,
-                     int(max_iterations), max_evaluations, ftol, xtol, gtol, callback, max_time)
+                     int(max_iterations), max_evaluations, ftol, xtol, gtol, callback, max_time, residual)
     finally:
         if owns_log:
             fitlog.close()
@@ -216,7 +237,7 @@ def _not_started(x0, run) -> Solution:
 
 
 def _loop(kind, evaluate, x0, optimizer, meta, fitlog, run, resume, seed, max_iterations, max_evaluations,
-          ftol, xtol, gtol, callback, max_time=None):
+          ftol, xtol, gtol, callback, max_time=None, residual=None):
     clock0 = _time.perf_counter()
     deadline = None if max_time is None else clock0 + float(max_time)
     runlog = fitlog.run(run) if fitlog is not None else None
@@ -227,7 +248,7 @@ def _loop(kind, evaluate, x0, optimizer, meta, fitlog, run, resume, seed, max_it
         runlog.check(meta, x0)
         restored = runlog.restore()
 
-    oracle = _Oracle(evaluate, max_evaluations)
+    oracle = _Oracle(evaluate, max_evaluations, residual=residual if kind == "least_squares" else None)
     residual_view = None
     fn = oracle
     if kind == "least_squares" and optimizer.kind == "minimize":
@@ -240,7 +261,9 @@ def _loop(kind, evaluate, x0, optimizer, meta, fitlog, run, resume, seed, max_it
         residual = jacobian = None
         if kind == "least_squares":
             if hasattr(state, "residual"):
-                residual, jacobian = np.asarray(state.residual), np.asarray(state.jacobian)
+                residual = np.asarray(state.residual)
+                # a Broyden-updated J is not the Jacobian: leave it unknown
+                jacobian = np.asarray(state.jacobian) if int(getattr(state, "age", 0)) == 0 else None
             elif residual_view is not None and residual_view.current is not None:
                 residual, jacobian = (np.asarray(a) for a in residual_view.current)
         history = History(**{k: np.asarray(v) for k, v in rows.items()})

@@ -5,6 +5,11 @@ diag(J^T J) (Moré's scaling, which makes the damping invariant to rescaling a p
 (r, J) at x + h in one call, and accepts the trial when the actual decrease is positive. The gain ratio
 rho = actual / predicted decrease drives Nielsen's update (Madsen, Nielsen & Tingleff 2004, eq. 3.16):
 on acceptance mu *= max(1/3, 1 - (2 rho - 1)^3), nu = 2; on rejection mu *= nu, nu *= 2.
+
+With `broyden_steps` = k > 0 and an objective that also evaluates residuals alone (`fn.residual`), a
+trial costs one residual: J is carried by Broyden's rank-1 update J += (r_new - r - J h) h^T / h^T h
+(Madsen, Nielsen & Tingleff 2004, sec. 3.4) and evaluated exactly again after k accepted steps, after a
+rejected trial, and before the model's predicted decrease may end the run.
 """
 from __future__ import annotations
 
@@ -41,6 +46,7 @@ class LMState:
       nu: Nielsen's rejection growth factor, scalar.
       scale: D, running maximum of diag(J^T J), (p,).
       status: `fitting.optim.Reason` code, integer scalar.
+      age: accepted steps since J was last evaluated exactly (0: J is exact at x), integer scalar.
     """
 
     loss: jax.Array
@@ -51,6 +57,13 @@ class LMState:
     nu: jax.Array
     scale: jax.Array
     status: jax.Array
+    age: jax.Array = dataclasses.field(default_factory=lambda: np.zeros((), np.int32))
+
+
+@jax.jit
+def _broyden(jacobian, residual, residual_new, h):
+    """Broyden's rank-1 update of J along the step h (the secant condition J_new h = r_new - r)."""
+    return jacobian + jnp.outer(residual_new - residual - jacobian @ h, h) / jnp.dot(h, h)
 
 
 @jax.jit
@@ -87,11 +100,15 @@ class LevenbergMarquardt(AbstractOptimizer):
       max_damping: a step is given up (status `stalled`) when mu exceeds this.
       max_rejections: rejected trials allowed in one iteration before stopping with `stalled`
         (or `nonfinite` when all of them were non-finite).
+      broyden_steps: 0 evaluates (r, J) at every trial; k > 0 evaluates residuals alone at the trials and
+        updates J by Broyden's rule, evaluating it exactly after k accepted steps (see the module's
+        docstring); an objective without `residual` gets exact Jacobians.
     """
 
     initial_damping: float = 1e-3
     max_damping: float = 1e16
     max_rejections: int = 40
+    broyden_steps: int = 0
 
     kind = "least_squares"
     State = LMState
@@ -101,6 +118,16 @@ class LevenbergMarquardt(AbstractOptimizer):
         check_positive("LevenbergMarquardt.max_damping", self.max_damping)
         if int(self.max_rejections) < 1:
             raise ValueError(f"LevenbergMarquardt.max_rejections must be >= 1, got {self.max_rejections!r}")
+        if isinstance(self.broyden_steps, bool) or not isinstance(self.broyden_steps, (int, np.integer)) \
+                or int(self.broyden_steps) < 0:
+            raise ValueError(f"LevenbergMarquardt.broyden_steps must be an integer >= 0, got "
+                             f"{self.broyden_steps!r}")
+
+    def config(self) -> dict:
+        cfg = super().config()
+        if not self.broyden_steps:
+            del cfg["broyden_steps"]  # logs written before the option resume with exact Jacobians
+        return cfg
 
     def init(self, fn, x0):
         r, jac = fn(x0)
@@ -116,6 +143,9 @@ class LevenbergMarquardt(AbstractOptimizer):
                        scale=scale, status=host(status, np.int32))
 
     def step(self, fn, x, state):
+        residual_only = getattr(fn, "residual", None)
+        if self.broyden_steps and residual_only is not None:
+            return self._broyden_step(fn, residual_only, x, state)
         jtj, grad, scale = _normal_equations(state.residual, state.jacobian, state.scale)
         loss = scalar(state.loss)
         damping, nu = scalar(state.damping), scalar(state.nu)
@@ -149,6 +179,58 @@ class LevenbergMarquardt(AbstractOptimizer):
             nu *= 2.0
             if damping > self.max_damping:
                 break
+        if all_nonfinite and reason == Reason.STALLED:
+            reason = Reason.NONFINITE
+        return x, dataclasses.replace(state, damping=host(damping, x.dtype), nu=host(nu, x.dtype),
+                                      scale=scale, status=host(reason_code(reason), np.int32))
+
+    def _exact(self, fn, x, state):
+        """The state with (r, J) evaluated exactly at x (the loss and damping kept)."""
+        r, jac = fn(x)
+        r, jac = as_array(r), as_array(jac)
+        return dataclasses.replace(state, loss=_half_sq(r), residual=r, jacobian=jac, age=host(0, np.int32))
+
+    def _broyden_step(self, fn, residual_only, x, state):
+        if int(state.age) >= int(self.broyden_steps):
+            state = self._exact(fn, x, state)
+        loss = scalar(state.loss)
+        damping, nu = scalar(state.damping), scalar(state.nu)
+        x_host = np.asarray(x)
+        eps = float(np.finfo(x_host.dtype).eps)
+        all_nonfinite = True
+        reason = Reason.STALLED
+        for _ in range(int(self.max_rejections)):
+            jtj, grad, scale = _normal_equations(state.residual, state.jacobian, state.scale)
+            x_new, h, predicted = _damped_step(x, jtj, grad, scale, host(damping, x.dtype))
+            predicted = scalar(predicted)
+            tiny = not predicted > _ROUNDOFF_FACTOR * eps * loss
+            if tiny or np.array_equal(np.asarray(x_new), x_host):
+                if int(state.age) > 0:  # an approximate model does not decide convergence
+                    state = self._exact(fn, x, state)
+                    loss = scalar(state.loss)
+                    continue
+                reason, all_nonfinite = (Reason.CONVERGED_FTOL if tiny else Reason.CONVERGED_XTOL), False
+                break
+            r_new = as_array(residual_only(x_new))
+            loss_new = _half_sq(r_new)
+            loss_new_host = scalar(loss_new)
+            if math.isfinite(loss_new_host):
+                all_nonfinite = False
+            rho = (loss - loss_new_host) / predicted if math.isfinite(loss_new_host) else -math.inf
+            if rho > 0:
+                damping *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                jac_new = _broyden(state.jacobian, state.residual, r_new, h)
+                _, grad_new, _ = _normal_equations(r_new, jac_new, scale)
+                return x_new, LMState(loss=loss_new, grad=grad_new, residual=r_new, jacobian=jac_new,
+                                      damping=host(damping, x.dtype), nu=host(2.0, x.dtype), scale=scale,
+                                      status=state.status, age=host(int(state.age) + 1, np.int32))
+            damping *= nu
+            nu *= 2.0
+            if damping > self.max_damping:
+                break
+            if int(state.age) > 0:  # the failed trial may be the model's fault: evaluate J exactly
+                state = self._exact(fn, x, state)
+                loss = scalar(state.loss)
         if all_nonfinite and reason == Reason.STALLED:
             reason = Reason.NONFINITE
         return x, dataclasses.replace(state, damping=host(damping, x.dtype), nu=host(nu, x.dtype),

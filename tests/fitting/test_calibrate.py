@@ -167,6 +167,13 @@ def test_log_from_before_a_new_setting_resumes_only_at_its_default():
     assert not _same_fit(dict(old, data="abd"), current)
     assert not _same_fit(dict(old, dx=0.02), current)
     assert not _same_fit(dict(old, settings=dict(old["settings"], starts=2)), current)
+    # Before `broyden_steps` existed every trial evaluated the exact Jacobian: such a log is resumed
+    # only by a fit with broyden_steps 0, whatever today's default is.
+    exact = dict(current, settings=_path_settings(FitSettings(dx=0.01, starts=1, broyden_steps=0)))
+    broyden = dict(current, settings=_path_settings(FitSettings(dx=0.01, starts=1, broyden_steps=30)))
+    before = json.loads(json.dumps(exact))
+    del before["settings"]["broyden_steps"]
+    assert _same_fit(before, exact) and not _same_fit(before, broyden)
 
 
 def test_cli_option_parsing_and_settings_errors():
