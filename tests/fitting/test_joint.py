@@ -5,6 +5,7 @@ Jacobian puts each recording's columns under the shared material and its own nui
 information shares sum to 1 per parameter; densities must agree; a joint fit of a slump and a drop of
 the same foam recovers the fitted parameter, writes its report, and resumes to the same result.
 """
+import dataclasses
 import json
 
 import numpy as np
@@ -52,6 +53,18 @@ def test_joint_residual_stacks_the_recordings(recordings):
     np.testing.assert_allclose(J[n0:, [0, 2]], J1 / 0.5, rtol=0, atol=0)
     assert np.all(J[:n0, 2] == 0) and np.all(J[n0:, 1] == 0)
     assert np.max(np.abs(J0[:, 1])) > 0 and np.max(np.abs(J1[:, 1])) > 0
+    # the residual alone (Broyden-updated LM's trials) is the stacked, scaled r, to round-off
+    np.testing.assert_allclose(joint.residual(z), r, rtol=1e-9, atol=1e-13)  # another compiled program
+
+
+@pytest.mark.slow
+def test_joint_fit_with_broyden_jacobians_reaches_the_exact_joint_optimum(recordings):
+    """calibrate_joint with broyden_steps 30: the exact-Jacobian joint fit's sigma_y to 1e-3 and its
+    interval to 1e-2 (both stages run their trials on residuals alone)."""
+    exact = calibrate_joint(recordings, dataclasses.replace(SETTINGS, max_iter=12))
+    broyden = calibrate_joint(recordings, dataclasses.replace(SETTINGS, max_iter=12, broyden_steps=30))
+    assert abs(broyden.params["sigma_y"] / exact.params["sigma_y"] - 1) < 1e-3
+    np.testing.assert_allclose(broyden.interval["sigma_y"], exact.interval["sigma_y"], rtol=1e-2)
 
 
 def test_joint_refuses_recordings_of_different_density(tmp_path):
