@@ -38,8 +38,8 @@ ADAM_DECAY = 50.0
 FTOL = 1e-7
 XTOL = 1e-6
 DEFAULT_STARTS = 3
-# LM's Jacobian: 0 evaluates (r, J) at every trial; k > 0 Broyden-updates J between exact ones, every k
-# accepted steps (`fitting.optim.LevenbergMarquardt.broyden_steps`).
+# LM's Jacobian: exact at every trial (0). Broyden updates (k > 0) saved little where 2D starts converge
+# and move the end of starts stopped by their budget (docs/performance.md).
 DEFAULT_BROYDEN_STEPS = 0
 # Goodness of fit: frames whose fitted and observed boundaries are on average more than this many
 # particle spacings apart are a misfit the discretization does not explain (docs/calibrate.md, "The defaults and why").
