@@ -122,24 +122,24 @@ def main(argv=None):
     rows = []
     for (name, k, tail), rec in sorted(records.items(), key=lambda kv: (kv[0][0], kv[0][2], kv[0][1])):
         base = records.get((name, 0, tail)) or records.get((name, 0, _suffix(QUICK if args.quick else {})))
-        if base is None:
-            continue
         ev = rec["evaluations"]
         med = {key: statistics.median(v[1:]) if len(v) > 1 else math.nan for key, v in ev.items()}
-        moved = max(_rel(rec["params"][n], base["params"][n]) for n in rec["params"])
-        ends = max(_rel(rec["interval"][n][i], base["interval"][n][i]) for n in rec["params"] for i in (0, 1))
-        same_time = "n/a"
-        if "best_history" in rec and "best_history" in base and k:
+        moved = ends = same_time = "n/a"  # no K = 0 run of this file recorded here
+        if base is not None:
+            moved = f"{max(_rel(rec['params'][n], base['params'][n]) for n in rec['params']):.2g}"
+            ends = f"{max(_rel(rec['interval'][n][i], base['interval'][n][i]) for n in rec['params'] for i in (0, 1)):.2g}"
+        if base is not None and "best_history" in rec and "best_history" in base and k:
             # K = 0's best start at the moment this run's best start ended (iterations finished by then)
             t_end = rec["best_history"]["time"][-1]
             done = [v for v, t in zip(base["best_history"]["loss"], base["best_history"]["time"]) if t <= t_end]
             same_time = f"{min(done):.4g}" if done else "n/a"
         rows.append([name, k, ", ".join(f"{a}={b}" for a, b in rec["options"].items()) or "defaults",
-                     "same settings" if _suffix(base["options"]) == tail else "defaults", rec["wall"], rec["fit_wall"], sum(r["wall"] for r in rec["runs"]),
+                     "none" if base is None else "same settings" if _suffix(base["options"]) == tail else "defaults",
+                     rec["wall"], rec["fit_wall"], sum(r["wall"] for r in rec["runs"]),
                      " / ".join(str(r["iterations"]) for r in rec["runs"]), len(ev["jacobian"]), len(ev["residual"]),
                      med["jacobian"], med["residual"], sum(ev["jacobian"]) + sum(ev["residual"]),
-                     rec["loss"], same_time, f"{moved:.2g}", f"{ends:.2g}",
-                     "same" if rec["identifiable"] == base["identifiable"] else "differs"])
+                     rec["loss"], same_time, moved, ends,
+                     "n/a" if base is None else "same" if rec["identifiable"] == base["identifiable"] else "differs"])
     header = ["file", "broyden_steps", "settings", "against K = 0 with", "command wall (s)", "fit wall (s)", "starts (s)", "iterations per start",
               "(r, J) calls", "r calls", "s per (r, J)", "s per r", "calls (s)", "loss", "K = 0's best start by then", "params moved (rel, max)",
               "interval ends moved (rel, max)", "identifiable"]
