@@ -119,3 +119,14 @@ def scene(name: str, dim: int = 2, **overrides) -> dict:
     spec = copy.deepcopy(_ZOO[name, dim])
     spec.update(copy.deepcopy(overrides))
     return spec
+
+
+def counted(fn):
+    """fn wrapped to count its calls: (wrapped, calls), calls[0] the count so far."""
+    calls = [0]
+
+    def wrapped(x):
+        calls[0] += 1
+        return fn(x)
+
+    return wrapped, calls

@@ -34,7 +34,6 @@ class _Oracle:
         self.max_evaluations = max_evaluations
         self.evaluations = int(evaluations)
         self.nonfinite = int(nonfinite)
-        self.jacobians = 0
         if residual is not None:
             self.residual = self._residual_only
             self._residual = residual
@@ -44,24 +43,23 @@ class _Oracle:
             raise _BudgetExhausted
         self.evaluations += 1
 
-    def _residual_only(self, x):
-        """r(x) alone (one evaluation; non-finite: inf)."""
-        self._count()
-        value = as_array(self._residual(x))
-        if not np.isfinite(np.asarray(value)).all():
+    def _checked(self, value, *arrays):
+        """value, or inf in its shape when it or any of the arrays is not finite (counted)."""
+        if not all(np.isfinite(np.asarray(a)).all() for a in (value,) + arrays):
             self.nonfinite += 1
             value = host(np.full(value.shape, np.inf, value.dtype))
         return value
 
+    def _residual_only(self, x):
+        """r(x) alone (one evaluation)."""
+        self._count()
+        return self._checked(as_array(self._residual(x)))
+
     def __call__(self, x):
         self._count()
-        self.jacobians += 1
         value, deriv = self.evaluate(x)
         value, deriv = as_array(value), as_array(deriv)
-        if not (np.isfinite(np.asarray(value)).all() and np.isfinite(np.asarray(deriv)).all()):
-            self.nonfinite += 1
-            value = host(np.full(value.shape, np.inf, value.dtype))
-        return value, deriv
+        return self._checked(value, deriv), deriv
 
 
 @jax.jit

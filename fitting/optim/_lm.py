@@ -143,11 +143,15 @@ class LevenbergMarquardt(AbstractOptimizer):
                        scale=scale, status=host(status, np.int32))
 
     def step(self, fn, x, state):
-        residual_only = getattr(fn, "residual", None)
-        if self.broyden_steps and residual_only is not None:
-            return self._broyden_step(fn, residual_only, x, state)
-        jtj, grad, scale = _normal_equations(state.residual, state.jacobian, state.scale)
-        loss = scalar(state.loss)
+        # Broyden's updates need residuals alone; without them every trial evaluates (r, J).
+        residual_only = getattr(fn, "residual", None) if self.broyden_steps else None
+        if residual_only is not None and int(state.age) >= int(self.broyden_steps):
+            state = self._exact(fn, x, state)
+
+        def model(state):
+            return state, _normal_equations(state.residual, state.jacobian, state.scale), scalar(state.loss)
+
+        state, (jtj, grad, scale), loss = model(state)
         damping, nu = scalar(state.damping), scalar(state.nu)
         x_host = np.asarray(x)
         eps = float(np.finfo(x_host.dtype).eps)
@@ -156,14 +160,18 @@ class LevenbergMarquardt(AbstractOptimizer):
         for _ in range(int(self.max_rejections)):
             x_new, h, predicted = _damped_step(x, jtj, grad, scale, host(damping, x.dtype))
             predicted = scalar(predicted)
-            if not predicted > _ROUNDOFF_FACTOR * eps * loss:  # nothing left to gain at this precision
-                reason, all_nonfinite = Reason.CONVERGED_FTOL, False
+            tiny = not predicted > _ROUNDOFF_FACTOR * eps * loss  # nothing left to gain at this precision
+            if tiny or np.array_equal(np.asarray(x_new), x_host):  # or the step is below x's resolution
+                if int(state.age) > 0:  # an approximate model does not decide convergence
+                    state, (jtj, grad, scale), loss = model(self._exact(fn, x, state))
+                    continue
+                reason, all_nonfinite = (Reason.CONVERGED_FTOL if tiny else Reason.CONVERGED_XTOL), False
                 break
-            if np.array_equal(np.asarray(x_new), x_host):  # the step is below the resolution of x
-                reason, all_nonfinite = Reason.CONVERGED_XTOL, False
-                break
-            r_new, jac_new = fn(x_new)
-            r_new, jac_new = as_array(r_new), as_array(jac_new)
+            if residual_only is None:
+                r_new, jac_new = fn(x_new)
+                r_new, jac_new = as_array(r_new), as_array(jac_new)
+            else:
+                r_new, jac_new = as_array(residual_only(x_new)), None
             loss_new = _half_sq(r_new)
             loss_new_host = scalar(loss_new)
             if math.isfinite(loss_new_host):
@@ -171,67 +179,26 @@ class LevenbergMarquardt(AbstractOptimizer):
             rho = (loss - loss_new_host) / predicted if math.isfinite(loss_new_host) else -math.inf
             if rho > 0:
                 damping *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                age = 0 if jac_new is not None else int(state.age) + 1
+                if jac_new is None:
+                    jac_new = _broyden(state.jacobian, state.residual, r_new, h)
                 _, grad_new, _ = _normal_equations(r_new, jac_new, scale)
                 return x_new, LMState(loss=loss_new, grad=grad_new, residual=r_new, jacobian=jac_new,
-                                      damping=host(damping, x.dtype), nu=host(2.0, x.dtype),
-                                      scale=scale, status=state.status)
+                                      damping=host(damping, x.dtype), nu=host(2.0, x.dtype), scale=scale,
+                                      status=state.status, age=host(age, np.int32))
             damping *= nu
             nu *= 2.0
             if damping > self.max_damping:
                 break
+            if int(state.age) > 0:  # the failed trial may be the model's fault: evaluate J exactly
+                state, (jtj, grad, scale), loss = model(self._exact(fn, x, state))
         if all_nonfinite and reason == Reason.STALLED:
             reason = Reason.NONFINITE
         return x, dataclasses.replace(state, damping=host(damping, x.dtype), nu=host(nu, x.dtype),
                                       scale=scale, status=host(reason_code(reason), np.int32))
 
     def _exact(self, fn, x, state):
-        """The state with (r, J) evaluated exactly at x (the loss and damping kept)."""
+        """The state with (r, J) evaluated exactly at x (damping kept)."""
         r, jac = fn(x)
         r, jac = as_array(r), as_array(jac)
         return dataclasses.replace(state, loss=_half_sq(r), residual=r, jacobian=jac, age=host(0, np.int32))
-
-    def _broyden_step(self, fn, residual_only, x, state):
-        if int(state.age) >= int(self.broyden_steps):
-            state = self._exact(fn, x, state)
-        loss = scalar(state.loss)
-        damping, nu = scalar(state.damping), scalar(state.nu)
-        x_host = np.asarray(x)
-        eps = float(np.finfo(x_host.dtype).eps)
-        all_nonfinite = True
-        reason = Reason.STALLED
-        for _ in range(int(self.max_rejections)):
-            jtj, grad, scale = _normal_equations(state.residual, state.jacobian, state.scale)
-            x_new, h, predicted = _damped_step(x, jtj, grad, scale, host(damping, x.dtype))
-            predicted = scalar(predicted)
-            tiny = not predicted > _ROUNDOFF_FACTOR * eps * loss
-            if tiny or np.array_equal(np.asarray(x_new), x_host):
-                if int(state.age) > 0:  # an approximate model does not decide convergence
-                    state = self._exact(fn, x, state)
-                    loss = scalar(state.loss)
-                    continue
-                reason, all_nonfinite = (Reason.CONVERGED_FTOL if tiny else Reason.CONVERGED_XTOL), False
-                break
-            r_new = as_array(residual_only(x_new))
-            loss_new = _half_sq(r_new)
-            loss_new_host = scalar(loss_new)
-            if math.isfinite(loss_new_host):
-                all_nonfinite = False
-            rho = (loss - loss_new_host) / predicted if math.isfinite(loss_new_host) else -math.inf
-            if rho > 0:
-                damping *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
-                jac_new = _broyden(state.jacobian, state.residual, r_new, h)
-                _, grad_new, _ = _normal_equations(r_new, jac_new, scale)
-                return x_new, LMState(loss=loss_new, grad=grad_new, residual=r_new, jacobian=jac_new,
-                                      damping=host(damping, x.dtype), nu=host(2.0, x.dtype), scale=scale,
-                                      status=state.status, age=host(int(state.age) + 1, np.int32))
-            damping *= nu
-            nu *= 2.0
-            if damping > self.max_damping:
-                break
-            if int(state.age) > 0:  # the failed trial may be the model's fault: evaluate J exactly
-                state = self._exact(fn, x, state)
-                loss = scalar(state.loss)
-        if all_nonfinite and reason == Reason.STALLED:
-            reason = Reason.NONFINITE
-        return x, dataclasses.replace(state, damping=host(damping, x.dtype), nu=host(nu, x.dtype),
-                                      scale=scale, status=host(reason_code(reason), np.int32))

@@ -10,6 +10,7 @@ from fitting import FitSettings
 from fitting.settings import CalibrationError
 from fitting.optim._base import state_arrays, state_from_arrays
 from fitting.optim._lm import _broyden
+from helpers import counted
 
 # Two exponentials with noise: a curved valley (the decay rates trade off), 4 parameters like a material fit.
 T = jnp.linspace(0.0, 4.0, 400)
@@ -23,16 +24,6 @@ def _r(x):
 R = jax.jit(_r)
 RJ = jax.jit(lambda x: (_r(x), jax.jacfwd(_r)(x)))
 X0 = np.array([1.0, 1.0, 1.0, 0.1])
-
-
-def counted(fn):
-    calls = [0]
-
-    def wrapped(x):
-        calls[0] += 1
-        return fn(x)
-
-    return wrapped, calls
 
 
 def solve(k, rj=RJ, r=R, **kw):

@@ -7,6 +7,7 @@ import pytest
 
 import fitting.optim as F
 from fitting.optim.fitlog import ROW_LEAF_MAX
+from helpers import counted
 
 
 def rosenbrock(x):
@@ -37,16 +38,6 @@ def interrupt_after(k):
             raise Interrupt
 
     return callback
-
-
-def counted(fn):
-    calls = [0]
-
-    def wrapped(x):
-        calls[0] += 1
-        return fn(x)
-
-    return wrapped, calls
 
 
 CASES = {

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import fitting.optim as F
+from helpers import counted
 
 ONES_TOL = 1e-5  # |x - 1| at convergence; gtol 1e-6 leaves Adam ~3e-6 away, the others far closer
 
@@ -27,16 +28,6 @@ def rosenbrock_residuals(x):
 
 ROSEN_VG = jax.jit(jax.value_and_grad(rosenbrock))
 ROSEN_RJ = jax.jit(F.value_and_jacfwd(rosenbrock_residuals))
-
-
-def counted(fn):
-    calls = [0]
-
-    def wrapped(x):
-        calls[0] += 1
-        return fn(x)
-
-    return wrapped, calls
 
 
 # ---------------------------------------------------------------- Rosenbrock
