@@ -15,7 +15,6 @@ Writes experiments/results/grid_resolved_frames[_quick].md and .json. SI units.
 from __future__ import annotations
 
 import json
-import math
 import sys
 from pathlib import Path
 
@@ -24,20 +23,19 @@ import numpy as np
 
 from experiments import _common as C
 from fitting import FitSettings, build_problem, read_silhouettes, silhouette_mismatch
-from fitting.settings import FIT_PPC, FRAME_BOUNDARY_SPACINGS
+from fitting.settings import DX_CHECK_RATIO, FIT_PPC, FRAME_BOUNDARY_SPACINGS
 from fitting.silhouette import particle_spacing
 from jaxfoam.guards import atomic_output
 
 DATA = Path(__file__).resolve().parent / "reference" / "data"
 NAME = "grid_resolved_frames"
-CHECK_REFINE = math.sqrt(2.0)  # the discretization check's grid: dx / sqrt(2)
 
 
 def frame_rows(path: Path) -> dict:
     """Per-frame grid-to-grid and grid-to-data boundary displacements (particle spacings) and frame losses at the truth."""
     data = read_silhouettes(path)
     coarse = build_problem(data, FitSettings(starts=1, dx_check=False))
-    fine = build_problem(data, FitSettings(dx=coarse.dx / CHECK_REFINE, starts=1, dx_check=False))
+    fine = build_problem(data, FitSettings(dx=coarse.dx * DX_CHECK_RATIO, starts=1, dx_check=False))
     truth = {n: float(data.truth[n]) for n in coarse.transform.names}
     spacing = particle_spacing(coarse.dx, FIT_PPC[coarse.scene.dim], coarse.scene.dim)
     occ = np.asarray(coarse.render(truth))
