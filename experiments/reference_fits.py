@@ -48,16 +48,25 @@ def phase_records(phase: float) -> Path:
     return C.RESULTS / f"{NAME}_floor_phase_{phase:g}"
 
 
+def records_of(settings: FitSettings) -> Path:
+    """Where the fits with `settings` (the defaults, `--floor-phase` or `--resolved-frames`) are recorded."""
+    if settings.resolved_frames:
+        return C.RESULTS / f"{NAME}_resolved_frames"
+    return RECORDS if settings.floor_phase is None else phase_records(settings.floor_phase)
+
+
 def fit_one(path: Path, settings: FitSettings) -> dict:
     """Fit one reference file with `settings` (resuming its log); the record of the result."""
-    logs = LOGS if settings.floor_phase is None else LOGS.with_name(phase_records(settings.floor_phase).name)
+    logs = LOGS.with_name(records_of(settings).name)
     logs.mkdir(parents=True, exist_ok=True)
     log = logs / f"{path.stem}.fitlog.h5"
     data = read_silhouettes(path)
     t0 = time.perf_counter()
     res = calibrate(data, settings, log=log, resume=log.exists())
     wall = time.perf_counter() - t0
-    problem = build_problem(data, settings)
+    window = res.settings["time_window"]
+    problem = build_problem(data, dataclasses.replace(settings, resolved_frames=False,
+                                                      time_window=None if window is None else tuple(window)))
     truth = {n: float(data.truth[n]) for n in problem.transform.names}
     loss_truth = problem.loss(problem.transform.to_unconstrained(truth))
     return dict(file=path.name, truth=truth, params={n: float(res.params[n]) for n in res.fitted},
@@ -66,6 +75,8 @@ def fit_one(path: Path, settings: FitSettings) -> dict:
                 loss_truth=float(loss_truth), dx=float(problem.dx), floor_phase=problem.floor_phase,
                 wall=float(res.wall_time), run_wall=wall,
                 reproduces=bool(res.reproduces_data), notes=list(res.notes),
+                frames_used=len(res.data["frames_used"]), frames=len(data.times) - 1,
+                time_window=window, resolved=res.settings.get("resolved"),
                 date=time.strftime("%Y-%m-%d"))
 
 
@@ -192,6 +203,8 @@ def main(argv=None) -> int:
                     help="record default fits made elsewhere: FILE a name in experiments/reference/data")
     ap.add_argument("--floor-phase", type=float, default=None, metavar="X",
                     help="fit the files with a Coulomb floor with floor_phase X (cells), all else default")
+    ap.add_argument("--resolved-frames", action="store_true",
+                    help="fit with resolved_frames on (`jaxfoam fit --resolved-frames`), all else default")
     args = ap.parse_args(sys.argv[1:] if argv is None else argv)
     jax.config.update("jax_enable_x64", True)
     for item in args.from_fit:
@@ -207,10 +220,13 @@ def main(argv=None) -> int:
     files = sorted(DATA.glob("*.h5"))
     if args.only:
         files = [p for p in files if args.only in p.name]
-    settings, where = FitSettings(), RECORDS
+    settings = FitSettings()
     if args.floor_phase is not None:
-        settings, where = FitSettings(floor_phase=args.floor_phase).validate(), phase_records(args.floor_phase)
+        settings = FitSettings(floor_phase=args.floor_phase).validate()
         files = [p for p in files if has_coulomb_floor(p)]
+    if args.resolved_frames:
+        settings = FitSettings(resolved_frames=True).validate()
+    where = records_of(settings)
     for path in files if not args.report else []:
         out = where / f"{path.stem}.json"
         if out.exists():

@@ -208,6 +208,10 @@ def add_fit_parser(subparsers) -> argparse.ArgumentParser:
                          f"0: the exact Jacobian at every trial (default {DEFAULT_BROYDEN_STEPS}; starts in turn only)")
     ap.add_argument("--time-window", default=None, metavar="T_LO:T_HI",
                     help="fit only the frames with times in [T_LO, T_HI] s, e.g. 0:0.8 (default: all)")
+    ap.add_argument("--resolved-frames", action="store_true",
+                    help="fit only the frames before the first one the grid does not resolve (its silhouette "
+                         "moves more than a particle spacing at dx / sqrt 2), found at the start and at each "
+                         "optimum and refitted until the window stays put")
     ap.add_argument("--time-budget", default=None, metavar="DURATION",
                     help="wall-time budget of the optimization, all starts together: 900 (s), 15m or 1.5h "
                          "(default: none). The best point found is reported when it runs out; --resume continues")
@@ -264,7 +268,8 @@ def settings_from_args(args) -> FitSettings:
                        broyden_steps=(DEFAULT_BROYDEN_STEPS if getattr(args, "broyden_steps", None) is None
                                       else args.broyden_steps),
                        time_budget=parse_duration(getattr(args, "time_budget", None)),
-                       time_window=parse_window(getattr(args, "time_window", None)), seed=args.seed,
+                       time_window=parse_window(getattr(args, "time_window", None)),
+                       resolved_frames=bool(getattr(args, "resolved_frames", False)), seed=args.seed,
                        pixel_level=args.pixel_level, dtype=args.dtype,
                        dx_check=not args.no_dx_check, dx_refit=args.dx_refit,
                        resample=parse_feature(getattr(args, "resample", None), ResampleConfig, "resample"),
@@ -350,8 +355,11 @@ def run_fit(args) -> int:
               "extra: pip install 'jaxfoam[viz]')", flush=True)
         plots = False
     problem = build_problem(data, settings, max_particles=args.max_particles, max_substeps=args.max_substeps)
-    if not args.resume and log.exists():
-        log.unlink()  # a fresh fit: an old log of this name is replaced
+    if not args.resume:
+        from .horizon import RESOLVED_MAX_ROUNDS, round_log
+        for old in [log] + [round_log(log, k) for k in range(RESOLVED_MAX_ROUNDS)]:
+            if old.exists():
+                old.unlink()  # a fresh fit: old logs of this name are replaced
 
     status, result = _run_logged_fit(
         lambda say: calibrate(data, settings, log=log, resume=args.resume, progress=say, problem=problem), log, out, rank)
@@ -361,6 +369,11 @@ def run_fit(args) -> int:
         loss_png = out.with_name(out.stem + "_loss.png")
         overlay_png = out.with_name(out.stem + "_overlay.png")
         plot_loss(result, loss_png)
+        if settings.resolved_frames:  # the overlay shows the frames fitted
+            window = result.settings["time_window"]
+            problem = build_problem(data, dataclasses.replace(settings, resolved_frames=False, time_window=None
+                                    if window is None else tuple(window)), max_particles=args.max_particles,
+                                    max_substeps=args.max_substeps)
         plot_overlay(problem, result, overlay_png)
         print(f"wrote {loss_png} and {overlay_png}")
     return 0

@@ -149,7 +149,8 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
       progress: callable(str) receiving one line per iteration (iteration, loss, parameters), or None.
       callback: callable(IterationInfo, params dict) after every iteration; an exception it raises stops
         the fit (the log stays resumable).
-      problem: a prebuilt `build_problem(data, settings)` (reuses its simulator).
+      problem: a prebuilt `build_problem(data, settings)` (reuses its simulator; not used with
+        `settings.resolved_frames`, whose rounds build their own, `fitting.horizon`).
     Returns a `FitResult`.
     """
     if isinstance(data, (list, tuple)):
@@ -161,6 +162,9 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
     if not isinstance(data, Silhouettes):
         data = read_silhouettes(data)
     settings = (settings or FitSettings()).validate()
+    if settings.resolved_frames:
+        from .horizon import calibrate_resolved
+        return calibrate_resolved(data, settings, log=log, resume=resume, progress=progress, callback=callback)
     say = progress or (lambda msg: None)
     if problem is None:
         problem = build_problem(data, settings)

@@ -172,6 +172,9 @@ def information_shares(joint: JointProblem, parts) -> np.ndarray:
 def build_joint(datas, settings: FitSettings | None = None) -> JointProblem:
     """Bind every recording to its simulator with the shared settings; the densities must agree."""
     settings = (settings or FitSettings()).validate()
+    if settings.resolved_frames:
+        raise CalibrationError("resolved_frames=True is for a fit of one recording; a joint fit of several "
+                               "fits the frames of time_window in each (set resolved_frames False)")
     labels = [f"recording {i}" if isinstance(d, Silhouettes) else str(d) for i, d in enumerate(datas)]
     datas = [d if isinstance(d, Silhouettes) else read_silhouettes(d) for d in datas]
     if len(datas) < 2:

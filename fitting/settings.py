@@ -119,6 +119,10 @@ class FitSettings:
       time_window: (t_lo, t_hi), s: fit only the frames whose times lie in it (None: every frame after the
         start); the rollouts then stop at the last of them. For data whose late phase the model (or a
         coarse grid) does not resolve, e.g. foam tearing off a plate.
+      resolved_frames: fit only the frames (of time_window, or of all) before the first one whose silhouette
+        moves more than FRAME_BOUNDARY_SPACINGS particle spacings between the fit grid and DX_CHECK_RATIO dx,
+        measured at the start point and again at each optimum, refitting until the window stays put
+        (`fitting.horizon`). For records whose late frames the grid, not the material, shapes.
       time_budget: wall-time budget of the optimization (all starts together), s; None: unlimited. It is
         checked before each iteration: a start stops when the time left is shorter than its previous
         iteration took, and starts with no time left do not run. The best point found is then reported
@@ -175,6 +179,7 @@ class FitSettings:
     broyden_steps: int = DEFAULT_BROYDEN_STEPS
     time_budget: float | None = None
     time_window: tuple | None = None
+    resolved_frames: bool = False
     population: bool | None = None
     devices: int | None = None
     seed: int = 0
@@ -262,6 +267,8 @@ class FitSettings:
                 raise CalibrationError(f"time_window must be (t_lo, t_hi) in s, got {self.time_window!r}") from None
             if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 <= lo < hi):
                 raise CalibrationError(f"time_window needs finite 0 <= t_lo < t_hi in s, got {lo}:{hi}")
+        if self.resolved_frames not in (True, False):
+            raise CalibrationError(f"resolved_frames must be True or False, got {self.resolved_frames!r}")
         if self.pixel_level is not None and int(self.pixel_level) < 0:
             raise CalibrationError(f"pixel_level must be >= 0, got {self.pixel_level!r}")
         if not 0.0 < self.level < 1.0:

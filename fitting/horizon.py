@@ -1,0 +1,172 @@
+"""Fits on the frames the grid resolves (`FitSettings.resolved_frames`).
+
+A frame whose silhouette moves by more than FRAME_BOUNDARY_SPACINGS particle spacings when the grid is
+refined to DX_CHECK_RATIO dx is placed by the grid, not by the material: a fit that uses it is pulled by
+the grid's error. `calibrate_resolved` fits only the frames before the first such frame, in rounds: the
+window is measured at the start point, fitted (every start), measured again at the optimum and refitted
+from it (one start) until the window stays put or RESOLVED_MAX_ROUNDS fits have run; the last window
+then gets the uncertainty and the discretization check at its optimum. The measurement is two forward
+rollouts over the whole record (the fit grid's and the finer grid's) and needs no data.
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from .check import finer_settings
+from .io import Silhouettes, read_silhouettes
+from .problem import CalibrationProblem, build_problem
+from .settings import FIT_PPC, FRAME_BOUNDARY_SPACINGS, FitSettings
+from .silhouette import particle_spacing
+
+# Fits of the round procedure: the first with every start, the others one-start refits from the last
+# optimum; a window still moving after three is reported as such rather than chased at more cost.
+RESOLVED_MAX_ROUNDS = 3
+# The shortest window fitted, in observed frames: fewer show too little of the motion to separate the
+# elastic from the flow parameters, so a record unresolved from its first frame keeps these.
+RESOLVED_MIN_FRAMES = 3
+
+
+def grid_displacement(coarse: CalibrationProblem, fine: CalibrationProblem, theta: dict) -> np.ndarray:
+    """Per observed frame of `coarse`, the mean boundary displacement between its silhouette at `theta`
+    and that of `fine` (the same frames on a finer grid, same pixels), in particle spacings of `coarse`
+    (`fitting.silhouette_mismatch`; a non-finite rollout's pixels count as outside)."""
+    from .driver import silhouette_mismatch
+
+    ppc = FIT_PPC[coarse.scene.dim] if coarse.settings.ppc is None else int(coarse.settings.ppc)
+    spacing = particle_spacing(coarse.dx, ppc, coarse.scene.dim)
+    occ = np.nan_to_num(np.asarray(coarse.render(theta), np.float64), nan=0.0)
+    occ_fine = np.nan_to_num(np.asarray(fine.render(theta), np.float64), nan=0.0)
+    _, boundary = silhouette_mismatch(occ, occ_fine, coarse.weights, coarse.cfg.pixel_size)
+    return boundary / spacing
+
+
+def resolved_count(displacement, limit: float = FRAME_BOUNDARY_SPACINGS,
+                   min_frames: int = RESOLVED_MIN_FRAMES) -> int:
+    """How many leading frames the grid resolves: the index of the first frame whose `displacement`
+    (particle spacings) exceeds `limit`, at least min(min_frames, frames) and all frames when none does."""
+    d = np.asarray(displacement, np.float64)
+    bad = np.nonzero(~(d <= limit))[0]  # a NaN displacement counts as unresolved
+    first = int(bad[0]) if len(bad) else len(d)
+    return max(first, min(int(min_frames), len(d)))
+
+
+def window_of(times, count: int, user_window) -> tuple | None:
+    """The time_window (s) that keeps the first `count` of the frames at `times` (s, increasing): it ends
+    half-way to the next frame; `user_window` (or None) when every frame is kept."""
+    times = np.asarray(times, np.float64)
+    if count >= len(times):
+        return None if user_window is None else tuple(float(v) for v in user_window)
+    lo = 0.0 if user_window is None else float(user_window[0])
+    return lo, float(0.5 * (times[count - 1] + times[count]))
+
+
+def round_log(log, k: int) -> Path | None:
+    """The fit log of round k beside the final log `log`: fit.fitlog.h5 -> fit.round0.fitlog.h5."""
+    if log is None:
+        return None
+    log = Path(log)
+    name = log.name
+    stem, suffix = (name[:-len(".fitlog.h5")], ".fitlog.h5") if name.endswith(".fitlog.h5") else (log.stem, log.suffix)
+    return log.with_name(f"{stem}.round{k}{suffix}")
+
+
+def calibrate_resolved(data, settings: FitSettings, *, log=None, resume: bool = False,
+                       progress: Callable[[str], None] | None = None, callback=None):
+    """`calibrate` on the frames the fit grid resolves (see the module docstring); returns a `FitResult`
+    whose `settings["time_window"]` is the window fitted and `settings["resolved"]` records the rounds
+    (window, grid displacement per frame at the point measured, loss, wall time). Round k's fit log is
+    `round_log(log, k)`, the final check's is `log`; `resume` continues each from its log."""
+    from .driver import calibrate, make_starts
+
+    wall0 = time.perf_counter()
+    if not isinstance(data, Silhouettes):
+        data = read_silhouettes(data)
+    settings = settings.validate()
+    say = progress or (lambda msg: None)
+    plain = dataclasses.replace(settings, resolved_frames=False)
+    coarse = build_problem(data, dataclasses.replace(plain, dx_check=False))
+    fine = build_problem(data, finer_settings(coarse, dataclasses.replace(plain, dx_check=False)))
+    times = np.asarray(data.times, np.float64)[np.asarray(coarse.frames)]
+    names = coarse.transform.names
+    theta = coarse.params_of(make_starts(coarse.transform, settings)[0][0])
+    budget = settings.time_budget
+    rounds, fitted_count, last = [], None, None
+    for k in range(RESOLVED_MAX_ROUNDS + 1):
+        shift = grid_displacement(coarse, fine, theta)
+        count = resolved_count(shift)
+        at = "the start point" if last is None else f"the round {k - 1} optimum"
+        say(f"resolved frames: at {at} the dx = {coarse.dx:.4g} m and dx = {fine.dx:.4g} m silhouettes are "
+            f"within {FRAME_BOUNDARY_SPACINGS:g} particle spacing in the first {count} of {len(times)} frames "
+            f"(t <= {times[count - 1]:.4g} s)")
+        rounds.append(dict(measured_at={n: float(theta[n]) for n in names}, displacement=[float(v) for v in shift],
+                           resolved=int(count)))
+        if count == fitted_count or k == RESOLVED_MAX_ROUNDS:
+            break
+        left = None if budget is None else budget - (time.perf_counter() - wall0)
+        if left is not None and left <= 0 and last is not None:
+            rounds[-1]["stopped"] = "time budget"
+            break
+        window = window_of(times, count, settings.time_window)
+        round_settings = dataclasses.replace(
+            plain, dx_check=False, time_window=window, time_budget=None if left is None else max(left, 1e-3),
+            **({} if last is None else dict(starts=1, initial={n: float(theta[n]) for n in names})))
+        last = calibrate(data, round_settings, log=round_log(log, k), resume=resume and _exists(round_log(log, k)),
+                         progress=say, callback=callback)
+        fitted_count, theta = count, last.params
+        rounds[-1].update(window=None if window is None else list(window), loss=float(last.loss),
+                          wall_time=float(last.wall_time), iterations=int(last.iterations),
+                          params={n: float(last.params[n]) for n in names})
+    window = window_of(times, fitted_count, settings.time_window)
+    # The last window's uncertainty and grid check at its optimum: no further iterations.
+    final = calibrate(data, dataclasses.replace(plain, time_window=window, starts=1, max_iter=0, time_budget=None,
+                                                initial={n: float(last.params[n]) for n in names}),
+                      log=log, resume=resume and _exists(log), progress=say)
+    return _merged(final, last, rounds, coarse, fine, times, fitted_count, settings, time.perf_counter() - wall0)
+
+
+def _exists(path) -> bool:
+    return path is not None and Path(path).exists()
+
+
+def _merged(final, last, rounds, coarse, fine, times, count, settings, wall):
+    """The final stage's result with the optimization history of the last fitting round, the rounds'
+    record and a note on the frames left out."""
+    n = len(times)
+    settled = rounds[-1]["resolved"] == count
+    notes = list(final.notes)
+    if count < n:
+        left = rounds[-1]["displacement"][count:]
+        note = (f"Fitted the first {count} of {n} frames (t <= {times[count - 1]:.4g} s), those the dx = "
+                f"{coarse.dx:.4g} m grid resolves: at the fitted parameters its silhouettes and those of the dx = "
+                f"{fine.dx:.4g} m grid are more than {FRAME_BOUNDARY_SPACINGS:g} particle spacing apart on average "
+                f"from t = {times[count]:.4g} s on (up to {max(left):.3g} spacings), so what those frames show is "
+                f"placed by the grid as much as by the material. A finer --dx resolves more of them.")
+    else:
+        note = (f"Every frame is resolved by the dx = {coarse.dx:.4g} m grid (its silhouettes and those of dx = "
+                f"{fine.dx:.4g} m within {FRAME_BOUNDARY_SPACINGS:g} particle spacing at the fitted parameters): "
+                f"all {n} were fitted.")
+    if not settled:
+        note += (f" The window had not settled after {RESOLVED_MAX_ROUNDS} rounds: at the last optimum "
+                 f"{rounds[-1]['resolved']} frames are resolved; the window fitted is the last round's.")
+    notes.insert(0, note)
+    out_settings = dict(final.settings, resolved_frames=True, time_window=final.settings["time_window"],
+                        max_iter=settings.max_iter, starts=settings.starts, initial=settings.initial,
+                        time_budget=settings.time_budget,
+                        resolved=dict(rounds=rounds, frames=count, of=n, settled=bool(settled),
+                                      user_time_window=None if settings.time_window is None
+                                      else [float(v) for v in settings.time_window],
+                                      max_rounds=RESOLVED_MAX_ROUNDS, min_frames=RESOLVED_MIN_FRAMES,
+                                      limit_spacings=FRAME_BOUNDARY_SPACINGS, check_dx=float(fine.dx)))
+    return dataclasses.replace(final, settings=out_settings, notes=tuple(notes), loss_history=last.loss_history,
+                               time_history=last.time_history, runs=last.runs, best_run=last.best_run,
+                               best_iteration=last.best_iteration, reason=last.reason, iterations=last.iterations,
+                               evaluations=last.evaluations, wall_time=float(wall))
+
+
+__all__ = ["RESOLVED_MAX_ROUNDS", "RESOLVED_MIN_FRAMES", "calibrate_resolved", "grid_displacement",
+           "resolved_count", "round_log", "window_of"]

@@ -1,0 +1,158 @@
+"""Fits on the frames the grid resolves (`FitSettings.resolved_frames`, `fitting.horizon`).
+
+Contracts: the window ends before the first frame whose silhouette moves more than FRAME_BOUNDARY_SPACINGS
+particle spacings between the fit grid and DX_CHECK_RATIO dx (never shorter than RESOLVED_MIN_FRAMES); the
+rounds refit until the window stays put; the result is the last window's optimum with its uncertainty;
+a fit killed in a later round resumes to the uninterrupted result without rerunning finished rounds.
+The scene is the calibrate tests' slump (sigma_y alone fitted, dx = 1 cm, 5 observed frames).
+"""
+import dataclasses
+
+import numpy as np
+import pytest
+
+import fitting.horizon as horizon
+from fitting import CalibrationError, FitSettings, build_problem, calibrate, read_silhouettes, synthesize
+from fitting.check import finer_settings
+from fitting.cli import add_fit_parser, settings_from_args
+from fitting.horizon import RESOLVED_MIN_FRAMES, grid_displacement, resolved_count, round_log, window_of
+from fitting.settings import FRAME_BOUNDARY_SPACINGS
+
+from helpers import scene as zoo_scene
+
+SLUMP = zoo_scene("slump", initial_shape={"type": "box", "min": [-0.04, 0.0], "max": [0.04, 0.1]})
+TRUTH = {"mu": 150.0, "sigma_y": 25.0, "eta": 5.0, "m": 0.6}
+SETTINGS = FitSettings(dx=0.01, fixed={"mu": 150.0, "eta": 5.0, "m": 0.6}, starts=1, max_iter=8, dx_refit=1,
+                       resolved_frames=True)
+TIMES = [0.06, 0.12, 0.18, 0.24, 0.3]  # the slump data's observed frames, s
+
+
+@pytest.fixture(scope="module")
+def slump(tmp_path_factory):
+    data = synthesize(SLUMP, TRUTH, dx=0.005, frames=6, duration=0.3, noise=0.02, seed=1)
+    path = tmp_path_factory.mktemp("resolved") / "slump.h5"
+    data.write(path)
+    return path
+
+
+def test_resolved_count_stops_before_the_first_unresolved_frame_and_keeps_a_minimum():
+    """The first frame above the limit ends the window; NaN counts as unresolved; a record unresolved from
+    its first frame keeps RESOLVED_MIN_FRAMES; a resolved record keeps every frame."""
+    assert resolved_count([0.2, 0.4, 0.9, 1.3, 0.5, 2.0]) == 3  # the 0.5 after the first miss does not count
+    assert resolved_count([0.2, 0.3, 0.4, 0.5, np.nan]) == 4
+    assert resolved_count([1.5, 0.2, 0.3, 0.2, 0.2]) == RESOLVED_MIN_FRAMES == 3
+    assert resolved_count([0.1, 0.2]) == 2  # a record shorter than the minimum keeps what it has
+    assert resolved_count([0.1] * 7) == 7
+    # the limit itself is resolved
+    assert resolved_count([0.2, FRAME_BOUNDARY_SPACINGS, 0.3, 1.01 * FRAME_BOUNDARY_SPACINGS, 0.1]) == 3
+
+
+def test_window_of_ends_half_way_to_the_next_frame_and_keeps_the_users_start():
+    assert window_of(TIMES, 3, None) == (0.0, pytest.approx(0.21))
+    assert window_of(TIMES, 2, (0.1, 0.3)) == (0.1, pytest.approx(0.15))
+    assert window_of(TIMES, 5, None) is None
+    assert window_of(TIMES, 5, (0.05, 0.31)) == (0.05, 0.31)
+
+
+def test_round_logs_sit_beside_the_final_log():
+    assert round_log("/a/fit.fitlog.h5", 1).name == "fit.round1.fitlog.h5"
+    assert round_log("/a/run.h5", 0).name == "run.round0.h5"
+    assert round_log(None, 0) is None
+
+
+def test_settings_and_cli_name_resolved_frames_and_joint_fits_refuse_it(slump):
+    import argparse
+    ap = argparse.ArgumentParser()
+    add_fit_parser(ap.add_subparsers())
+    args = ap.parse_args(["fit", "data.h5", "--out", "f.json", "--resolved-frames"])
+    assert settings_from_args(args).resolved_frames is True
+    assert settings_from_args(ap.parse_args(["fit", "data.h5", "--out", "f.json"])).resolved_frames is False
+    with pytest.raises(CalibrationError, match="resolved_frames must be True or False, got 'yes'"):
+        FitSettings(resolved_frames="yes").validate()
+    with pytest.raises(CalibrationError, match="resolved_frames=True is for a fit of one recording"):
+        calibrate([slump, slump], SETTINGS)
+
+
+@pytest.mark.slow
+def test_grid_displacement_measures_refinement_in_particle_spacings(slump):
+    """At the truth the slump's silhouettes on dx = 1 cm and dx / sqrt 2 differ by a fraction of a particle
+    spacing in every frame (measured 0.1-0.25) but not by nothing (two different grids); the same
+    problem against itself gives exactly 0."""
+    data = read_silhouettes(slump)
+    plain = dataclasses.replace(SETTINGS, resolved_frames=False, dx_check=False)
+    coarse = build_problem(data, plain)
+    fine = build_problem(data, finer_settings(coarse, plain))
+    theta = {"sigma_y": TRUTH["sigma_y"]}
+    d = grid_displacement(coarse, fine, theta)
+    assert d.shape == (5,)
+    assert np.all(d < 0.5) and np.all(d > 0.02), d
+    np.testing.assert_array_equal(grid_displacement(coarse, coarse, theta), 0.0)
+
+
+class Interrupt(Exception):
+    """Raised from the progress callback to kill a fit."""
+
+
+def scripted(monkeypatch, answers):
+    """Replace the grid measurement by `answers` (one displacement list per call, in order); returns the
+    list of parameter points it was called at."""
+    calls = []
+
+    def fake(coarse, fine, theta):
+        calls.append(dict(theta))
+        return np.asarray(answers[min(len(calls), len(answers)) - 1], np.float64)
+
+    monkeypatch.setattr(horizon, "grid_displacement", fake)
+    return calls
+
+
+@pytest.mark.slow
+def test_rounds_shrink_the_window_refit_from_the_optimum_and_resume(slump, tmp_path, monkeypatch):
+    """Scripted measurements: all 5 frames resolved at the start, then only the first 3 at each optimum.
+    Round 0 fits 5 frames, round 1 refits 3 from round 0's optimum, the third measurement agrees, so the
+    result is the 3-frame optimum (equal to a plain 3-frame fit started there) with the round record and
+    a note naming t = 0.24 s; a fit killed in round 1 resumes to the same result, round 0 read back."""
+    answers = [[0.2] * 5, [0.3, 0.4, 0.6, 1.4, 2.0], [0.3, 0.4, 0.7, 1.2, 1.9]]
+    data = read_silhouettes(slump)
+    calls = scripted(monkeypatch, answers)
+    ref = calibrate(data, SETTINGS, log=tmp_path / "ref.fitlog.h5")
+    assert len(calls) == 3
+    rounds = ref.settings["resolved"]["rounds"]
+    assert [r["resolved"] for r in rounds] == [5, 3, 3] and ref.settings["resolved"]["settled"] is True
+    assert rounds[0]["window"] is None and rounds[1]["window"] == [0.0, pytest.approx(0.21)]
+    assert ref.data["frames_used"] == [1, 2, 3] and list(ref.settings["time_window"]) == [0.0, pytest.approx(0.21)]
+    assert ref.settings["resolved_frames"] is True and len(ref.frame_iou) == 3
+    assert calls[1]["sigma_y"] == pytest.approx(rounds[0]["params"]["sigma_y"], rel=1e-12)
+    assert ref.params["sigma_y"] == pytest.approx(rounds[1]["params"]["sigma_y"], rel=1e-12)
+    assert "Fitted the first 3 of 5 frames (t <= 0.18 s)" in ref.notes[0] and "t = 0.24 s on" in ref.notes[0]
+    assert ref.settings["dx_check"] is not None  # the final window's discretization check ran
+    for k in (0, 1):
+        assert round_log(tmp_path / "ref.fitlog.h5", k).exists()
+
+    # The same 3-frame fit made directly from round 0's optimum reaches the same point.
+    direct = calibrate(data, dataclasses.replace(SETTINGS, resolved_frames=False, dx_check=False,
+                                                 time_window=(0.0, 0.21),
+                                                 initial={"sigma_y": rounds[0]["params"]["sigma_y"]}))
+    assert ref.params["sigma_y"] == pytest.approx(direct.params["sigma_y"], rel=1e-9)
+    assert ref.loss == pytest.approx(direct.loss, rel=1e-9)
+
+    # Killed at round 1's second iteration, then resumed.
+    calls.clear()
+    log = tmp_path / "killed.fitlog.h5"
+    seen = []
+
+    def kill(info, theta):
+        seen.append(info.iteration)
+        if len(calls) == 2 and info.iteration == 1:
+            raise Interrupt
+
+    with pytest.raises(Interrupt):
+        calibrate(data, SETTINGS, log=log, callback=kill)
+    calls.clear()
+    seen.clear()
+    resumed = calibrate(data, SETTINGS, log=log, resume=True, callback=lambda info, theta: seen.append(info.iteration))
+    assert resumed.params["sigma_y"] == pytest.approx(ref.params["sigma_y"], rel=1e-9)
+    np.testing.assert_allclose(resumed.loss_history, ref.loss_history, rtol=1e-9)
+    assert [r["resolved"] for r in resumed.settings["resolved"]["rounds"]] == [5, 3, 3]
+    # Round 0 was read back from its log (no new iteration), round 1 continued after iteration 1.
+    assert min(seen) >= 1, seen
