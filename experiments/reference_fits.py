@@ -13,10 +13,11 @@ a rerun skips finished fits and resumes a killed one from its log. `--report` re
 its settings are checked against the defaults and the loss at the truth is computed here.
 `--floor-phase X` fits the files with a Coulomb floor with only that setting changed (`jaxfoam fit
 --floor-phase X`), into experiments/results/reference_fits_floor_phase_X/; the page gives their table
-below the defaults'.
+below the defaults'. `--resolved-frames` fits every file with `resolved_frames` on, all else default, into
+experiments/results/reference_fits_resolved_frames/, and the page gives that table too.
 
 Usage: python -m experiments reference_fits [--only TEXT] [--report] [--from-fit FILE=FIT.json ...]
-                                            [--floor-phase X]
+                                            [--floor-phase X] [--resolved-frames]
 Writes experiments/results/reference_fits.md. SI units.
 """
 from __future__ import annotations
@@ -62,7 +63,8 @@ def fit_one(path: Path, settings: FitSettings) -> dict:
     log = logs / f"{path.stem}.fitlog.h5"
     data = read_silhouettes(path)
     t0 = time.perf_counter()
-    res = calibrate(data, settings, log=log, resume=log.exists())
+    # resolved-frames rounds keep their own logs beside `log` and resume each one that exists
+    res = calibrate(data, settings, log=log, resume=log.exists() or settings.resolved_frames)
     wall = time.perf_counter() - t0
     window = res.settings["time_window"]
     problem = build_problem(data, dataclasses.replace(settings, resolved_frames=False,
@@ -130,12 +132,12 @@ def has_coulomb_floor(path: Path) -> bool:
     return bool(floor) and floor.get("friction", 0.0) != "sticky" and floor.get("contact", "grid") == "grid"
 
 
-def compare(default: list[dict], other: list[dict], phase: float) -> str:
-    """Per file of `other`: each parameter's error with the defaults and with floor_phase `phase`, the loss
-    ratios and whether the truth lies inside each interval."""
+def compare(default: list[dict], other: list[dict], label: str) -> str:
+    """Per file of `other`: each parameter's error with the defaults and with the other settings (`label`),
+    the loss ratios and whether the truth lies inside each interval."""
     by_file = {r["file"]: r for r in default}
-    head = ["file", "param", "truth", "error, default", f"error, floor phase {phase:g}", "truth inside (default / phase)",
-            "loss truth / fit (default / phase)"]
+    head = ["file", "param", "truth", "error, default", f"error, {label}", f"truth inside (default / {label})",
+            f"loss truth / fit (default / {label})"]
     rows = []
     for r in other:
         d = by_file.get(r["file"])
@@ -147,6 +149,22 @@ def compare(default: list[dict], other: list[dict], phase: float) -> str:
             rows.append([r["file"] if i == 0 else "", n, f"{t:.4g}", f"{100 * (d['params'][n] / t - 1):+.0f}%",
                          f"{100 * (r['params'][n] / t - 1):+.0f}%", " / ".join(inside),
                          f"{d['loss_truth'] / d['loss']:.2f} / {r['loss_truth'] / r['loss']:.2f}" if i == 0 else ""])
+    return C.md_table(head, rows)
+
+
+def windows(default: list[dict], other: list[dict]) -> str:
+    """Per file of `other` (resolved-frames fits): the frames fitted, each round's frames kept, the wall times."""
+    by_file = {r["file"]: r for r in default}
+    head = ["file", "frames fitted", "window (s)", "frames kept per round", "settled", "wall (min), default / resolved"]
+    rows = []
+    for r in other:
+        res, d = r.get("resolved") or {}, by_file.get(r["file"])
+        window = r.get("time_window")
+        rows.append([r["file"], f"{r['frames_used']} of {r['frames']}",
+                     "all" if window is None else f"{window[0]:.3g}-{window[1]:.3g}",
+                     " -> ".join(str(x["resolved"]) for x in res.get("rounds", [])),
+                     "yes" if res.get("settled") else "no",
+                     f"{d['wall'] / 60:.1f} / {r['wall'] / 60:.1f}" if d else f"- / {r['wall'] / 60:.1f}"])
     return C.md_table(head, rows)
 
 
@@ -233,7 +251,8 @@ def main(argv=None) -> int:
             continue
         where.mkdir(parents=True, exist_ok=True)
         print(f"fitting {path.name} with the default settings" + ("" if settings.floor_phase is None else
-              f" but floor_phase {settings.floor_phase:g}"), flush=True)
+              f" but floor_phase {settings.floor_phase:g}") + (" but resolved_frames" if settings.resolved_frames
+                                                               else ""), flush=True)
         record = fit_one(path, settings)
         write_record(out, record)
         print(f"  {record['params']} in {record['wall'] / 60:.1f} min; loss at truth / fit "
@@ -249,7 +268,15 @@ def main(argv=None) -> int:
             body += (f"\n\n## The files with a Coulomb floor, `--floor-phase {phase:g}`\n\nThe same fits with the fit "
                      f"grid's node rows placed so that the floor lies {phase:g} cells above the row below it "
                      f"(`jaxfoam fit --floor-phase {phase:g}`), every other setting default; records in "
-                     f"experiments/results/{folder.name}/.\n\n" + compare(records, alt, phase) + "\n\n" + report(alt))
+                     f"experiments/results/{folder.name}/.\n\n" + compare(records, alt, f"floor phase {phase:g}") + "\n\n" + report(alt))
+    folder = records_of(FitSettings(resolved_frames=True))
+    alt = [json.loads(p.read_text()) for p in sorted(folder.glob("*.json"))] if folder.exists() else []
+    if alt:
+        body += ("\n\n## Resolved frames, `--resolved-frames`\n\nThe same fits with `resolved_frames` on (the frames "
+                 "before the first one whose silhouette moves more than a particle spacing between dx and "
+                 "dx / sqrt(2), chosen in rounds; docs/calibrate.md), every other setting default; records in "
+                 f"experiments/results/{folder.name}/. The loss ratio is over the frames each fit used.\n\n"
+                 + windows(records, alt) + "\n\n" + compare(records, alt, "resolved frames") + "\n\n" + report(alt))
     C.write_md(NAME, False, "Default fits on the reference simulator's data", body)
     return 0
 
