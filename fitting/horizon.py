@@ -11,6 +11,7 @@ rollouts over the whole record (the fit grid's and the finer grid's) and needs n
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from pathlib import Path
 from typing import Callable
@@ -37,6 +38,13 @@ def grid_displacement(coarse: CalibrationProblem, fine: CalibrationProblem, thet
     (`fitting.silhouette_mismatch`; a non-finite rollout's pixels count as outside)."""
     from .driver import silhouette_mismatch
 
+    tr = coarse.transform
+    # an optimum on a bound (where the transform is open) is measured just inside it
+    theta = dict(theta)
+    for i, n in enumerate(tr.names):
+        lo, hi = float(tr.lower[i]), float(tr.upper[i])
+        pad = 1e-9 * (hi - lo) if math.isfinite(hi - lo) else 0.0
+        theta[n] = min(max(float(theta[n]), lo + pad), hi - pad)
     ppc = FIT_PPC[coarse.scene.dim] if coarse.settings.ppc is None else int(coarse.settings.ppc)
     spacing = particle_spacing(coarse.dx, ppc, coarse.scene.dim)
     occ = np.nan_to_num(np.asarray(coarse.render(theta), np.float64), nan=0.0)

@@ -87,6 +87,10 @@ def test_grid_displacement_measures_refinement_in_particle_spacings(slump):
     assert d.shape == (5,)
     assert np.all(d < 0.5) and np.all(d > 0.02), d
     np.testing.assert_array_equal(grid_displacement(coarse, coarse, theta), 0.0)
+    # an optimum on a bound (m = 1.5 from a fit) is measured just inside it, not refused
+    lo, hi = coarse.transform.lower[0], coarse.transform.upper[0]
+    assert np.all(np.isfinite(grid_displacement(coarse, fine, {"sigma_y": float(hi)})))
+    assert np.all(np.isfinite(grid_displacement(coarse, fine, {"sigma_y": float(lo)})))
 
 
 class Interrupt(Exception):
