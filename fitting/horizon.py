@@ -88,7 +88,8 @@ def calibrate_resolved(data, settings: FitSettings, *, log=None, resume: bool = 
     """`calibrate` on the frames the fit grid resolves (see the module docstring); returns a `FitResult`
     whose `settings["time_window"]` is the window fitted and `settings["resolved"]` records the rounds
     (window, grid displacement per frame at the point measured, loss, wall time). Round k's fit log is
-    `round_log(log, k)`, the final check's is `log`; `resume` continues each from its log."""
+    `round_log(log, k)`, the final check's is `log`; `resume` continues each from its log, and the result's
+    wall_time then counts the optimizer time the earlier runs spent (from the logs), as `calibrate`'s does."""
     from .driver import calibrate, make_starts
 
     wall0 = time.perf_counter()
@@ -103,7 +104,7 @@ def calibrate_resolved(data, settings: FitSettings, *, log=None, resume: bool = 
     names = coarse.transform.names
     theta = coarse.params_of(make_starts(coarse.transform, settings)[0][0])
     budget = settings.time_budget
-    rounds, fitted_count, last = [], None, None
+    rounds, fitted_count, last, extra = [], None, None, 0.0
     for k in range(RESOLVED_MAX_ROUNDS + 1):
         shift = grid_displacement(coarse, fine, theta)
         count = resolved_count(shift)
@@ -123,18 +124,24 @@ def calibrate_resolved(data, settings: FitSettings, *, log=None, resume: bool = 
         round_settings = dataclasses.replace(
             plain, dx_check=False, time_window=window, time_budget=None if left is None else max(left, 1e-3),
             **({} if last is None else dict(starts=1, initial={n: float(theta[n]) for n in names})))
+        t = time.perf_counter()
         last = calibrate(data, round_settings, log=round_log(log, k), resume=resume and _exists(round_log(log, k)),
                          progress=say, callback=callback)
+        # a resumed round's wall_time holds the optimizer time of its earlier runs too (from its log)
+        extra += last.wall_time - (time.perf_counter() - t)
         fitted_count, theta = count, last.params
         rounds[-1].update(window=None if window is None else list(window), loss=float(last.loss),
                           wall_time=float(last.wall_time), iterations=int(last.iterations),
                           params={n: float(last.params[n]) for n in names})
     window = window_of(times, fitted_count, settings.time_window)
     # The last window's uncertainty and grid check at its optimum: no further iterations.
+    t = time.perf_counter()
     final = calibrate(data, dataclasses.replace(plain, time_window=window, starts=1, max_iter=0, time_budget=None,
                                                 initial={n: float(last.params[n]) for n in names}),
                       log=log, resume=resume and _exists(log), progress=say)
-    return _merged(final, last, rounds, coarse, fine, times, fitted_count, settings, time.perf_counter() - wall0)
+    extra += final.wall_time - (time.perf_counter() - t)
+    return _merged(final, last, rounds, coarse, fine, times, fitted_count, settings,
+                   time.perf_counter() - wall0 + extra)
 
 
 def _exists(path) -> bool:

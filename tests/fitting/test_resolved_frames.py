@@ -160,3 +160,5 @@ def test_rounds_shrink_the_window_refit_from_the_optimum_and_resume(slump, tmp_p
     assert [r["resolved"] for r in resumed.settings["resolved"]["rounds"]] == [5, 3, 3]
     # Round 0 was read back from its log (no new iteration), round 1 continued after iteration 1.
     assert min(seen) >= 1, seen
+    # The wall time counts the optimizer time the killed run spent (kept in the logs) too.
+    assert resumed.wall_time >= sum(r["wall_time"] for r in resumed.settings["resolved"]["rounds"] if "wall_time" in r)
