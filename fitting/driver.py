@@ -136,7 +136,7 @@ def _same_fit(logged: dict, fingerprint: dict) -> bool:
 def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bool = False,
               progress: Callable[[str], None] | None = None,
               callback: Callable[[optim.IterationInfo, dict], None] | None = None,
-              problem: CalibrationProblem | None = None) -> FitResult:
+              problem: CalibrationProblem | None = None, start_z=None) -> FitResult:
     """Fit mu, sigma_y, eta and m (those not fixed) to silhouette data.
 
     Args:
@@ -151,6 +151,8 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
         the fit (the log stays resumable).
       problem: a prebuilt `build_problem(data, settings)` (reuses its simulator; not used with
         `settings.resolved_frames`, whose rounds build their own, `fitting.horizon`).
+      start_z: the first start in fitted coordinates (p,), e.g. an earlier fit's `FitResult.z`, in place of
+        the one `settings.initial` gives (which rounds a parameter on a bound to just inside it).
     Returns a `FitResult`.
     """
     if isinstance(data, (list, tuple)):
@@ -184,6 +186,12 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
         + ("; fracture on" if sim.fracture else ""))
 
     starts, unit = make_starts(tr, settings)
+    if start_z is not None:
+        start_z = np.asarray(start_z, np.float64)
+        if start_z.shape != (tr.size,) or not np.all(np.isfinite(start_z)):
+            raise CalibrationError(f"start_z must be {tr.size} finite fitted coordinates ({', '.join(names)}), "
+                                   f"got {start_z.tolist()}")
+        starts[0] = start_z
     optimizer = make_optimizer(settings.optimizer, settings.broyden_steps)
     n_starts = len(starts)
     population = None
@@ -351,7 +359,7 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
                      iterations=int(best.iterations), evaluations=int(best.evaluations), settings=settings_out,
                      data=data_out, n_effective=float(n_eff),
                      wall_time=before + optimization_wall + time.perf_counter() - after0,
-                     uncertainty=unc, residual=np.asarray(r))
+                     uncertainty=unc, residual=np.asarray(r), z=np.asarray(z_best, np.float64))
     return _with_goodness_of_fit(problem, result)
 
 

@@ -87,7 +87,7 @@ def calibrate_resolved(data, settings: FitSettings, *, log=None, resume: bool = 
                        progress: Callable[[str], None] | None = None, callback=None):
     """`calibrate` on the frames the fit grid resolves (see the module docstring); returns a `FitResult`
     whose `settings["time_window"]` is the window fitted and `settings["resolved"]` records the rounds
-    (window, grid displacement per frame at the point measured, loss, wall time). Round k's fit log is
+    (window, grid displacement per frame at the point measured, loss, optimum, wall time). Round k's fit log is
     `round_log(log, k)`, the final check's is `log`; `resume` continues each from its log, and the result's
     wall_time then counts the optimizer time the earlier runs spent (from the logs), as `calibrate`'s does."""
     from .driver import calibrate, make_starts
@@ -126,19 +126,19 @@ def calibrate_resolved(data, settings: FitSettings, *, log=None, resume: bool = 
             **({} if last is None else dict(starts=1, initial={n: float(theta[n]) for n in names})))
         t = time.perf_counter()
         last = calibrate(data, round_settings, log=round_log(log, k), resume=resume and _exists(round_log(log, k)),
-                         progress=say, callback=callback)
+                         progress=say, callback=callback, start_z=None if last is None else last.z)
         # a resumed round's wall_time holds the optimizer time of its earlier runs too (from its log)
         extra += last.wall_time - (time.perf_counter() - t)
         fitted_count, theta = count, last.params
         rounds[-1].update(window=None if window is None else list(window), loss=float(last.loss),
                           wall_time=float(last.wall_time), iterations=int(last.iterations),
-                          params={n: float(last.params[n]) for n in names})
+                          params={n: float(last.params[n]) for n in names}, z=[float(v) for v in last.z])
     window = window_of(times, fitted_count, settings.time_window)
-    # The last window's uncertainty and grid check at its optimum: no further iterations.
+    # The last window's uncertainty and grid check at its optimum (its exact fitted coordinates): no iterations.
     t = time.perf_counter()
     final = calibrate(data, dataclasses.replace(plain, time_window=window, starts=1, max_iter=0, time_budget=None,
                                                 initial={n: float(last.params[n]) for n in names}),
-                      log=log, resume=resume and _exists(log), progress=say)
+                      log=log, resume=resume and _exists(log), progress=say, start_z=last.z)
     extra += final.wall_time - (time.perf_counter() - t)
     return _merged(final, last, rounds, coarse, fine, times, fitted_count, settings,
                    time.perf_counter() - wall0 + extra)

@@ -57,6 +57,8 @@ class FitResult:
         `interval_local`.
       interval_local: the combined interval at the optimum before the goodness-of-fit check (equal to
         `interval` when the fit reproduces the data).
+      z: the optimum in fitted coordinates (`fitted` order): exact where a parameter on a bound rounds to the
+        bound in `params` (`calibrate(..., start_z=result.z)` continues from it).
     """
 
     params: dict
@@ -87,6 +89,7 @@ class FitResult:
     frame_boundary_error: tuple = ()
     frame_boundary_limit: float = math.nan
     interval_local: dict | None = None
+    z: np.ndarray | None = None
 
     @property
     def reproduces_data(self) -> bool:
@@ -124,6 +127,7 @@ class FitResult:
             "wall_time": self.wall_time, "n_effective": self.n_effective,
             "frame_iou": list(self.frame_iou), "frame_boundary_error": list(self.frame_boundary_error),
             "frame_boundary_limit": self.frame_boundary_limit, "reproduces_data": self.reproduces_data,
+            "z": None if self.z is None else [float(v) for v in self.z],
         })
 
     def write(self, path) -> None:

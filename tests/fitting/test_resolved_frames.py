@@ -130,6 +130,10 @@ def test_rounds_shrink_the_window_refit_from_the_optimum_and_resume(slump, tmp_p
     assert ref.params["sigma_y"] == pytest.approx(rounds[1]["params"]["sigma_y"], rel=1e-12)
     assert "Fitted the first 3 of 5 frames (t <= 0.18 s)" in ref.notes[0] and "t = 0.24 s on" in ref.notes[0]
     assert ref.settings["dx_check"] is not None  # the final window's discretization check ran
+    # ... at round 1's optimum itself (its fitted coordinates, not the parameters rounded inside bounds)
+    np.testing.assert_array_equal(ref.z, rounds[1]["z"])
+    with pytest.raises(CalibrationError, match="start_z must be 1 finite fitted coordinates"):
+        calibrate(data, dataclasses.replace(SETTINGS, resolved_frames=False), start_z=[0.0, 1.0])
     for k in (0, 1):
         assert round_log(tmp_path / "ref.fitlog.h5", k).exists()
 
