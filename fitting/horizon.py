@@ -153,22 +153,26 @@ def _merged(final, last, rounds, coarse, fine, times, count, settings, wall):
     record and a note on the frames left out."""
     n = len(times)
     settled = rounds[-1]["resolved"] == count
+    chosen = [r for r in rounds if "loss" in r][-1]  # the measurement that chose the window fitted last
     notes = list(final.notes)
     if count < n:
-        left = rounds[-1]["displacement"][count:]
+        left = chosen["displacement"][count:]
         note = (f"Fitted the first {count} of {n} frames (t <= {times[count - 1]:.4g} s), those the dx = "
-                f"{coarse.dx:.4g} m grid resolves: at the fitted parameters its silhouettes and those of the dx = "
-                f"{fine.dx:.4g} m grid are more than {FRAME_BOUNDARY_SPACINGS:g} particle spacing apart on average "
-                f"from t = {times[count]:.4g} s on (up to {max(left):.3g} spacings), so what those frames show is "
-                f"placed by the grid as much as by the material. A finer --dx resolves more of them.")
+                f"{coarse.dx:.4g} m grid resolves: its silhouettes and those of the dx = {fine.dx:.4g} m grid are "
+                f"more than {FRAME_BOUNDARY_SPACINGS:g} particle spacing apart on average from t = "
+                f"{times[count]:.4g} s on (up to {max(left):.3g} spacings), so what those frames show is placed by "
+                f"the grid as much as by the material. A finer --dx resolves more of them.")
     else:
         note = (f"Every frame is resolved by the dx = {coarse.dx:.4g} m grid (its silhouettes and those of dx = "
-                f"{fine.dx:.4g} m within {FRAME_BOUNDARY_SPACINGS:g} particle spacing at the fitted parameters): "
-                f"all {n} were fitted.")
-    if not settled:
-        note += (f" The window had not settled after {RESOLVED_MAX_ROUNDS} rounds: at the last optimum "
-                 f"{rounds[-1]['resolved']} frames are resolved; the window fitted is the last round's.")
-    notes.insert(0, note)
+                f"{fine.dx:.4g} m within {FRAME_BOUNDARY_SPACINGS:g} particle spacing): all {n} were fitted.")
+    if settled:
+        note += " Measured again at the optimum, the window stays."
+    else:
+        why = ("the time budget ended the rounds" if rounds[-1].get("stopped") else
+               f"after {RESOLVED_MAX_ROUNDS} rounds")
+        note += (f" The window had not settled ({why}): at the optimum {rounds[-1]['resolved']} frames are "
+                 f"resolved; the window fitted is the last round's.")
+    notes[:0] = [note] + [m for m in last.notes if m.startswith("The time budget")]
     out_settings = dict(final.settings, resolved_frames=True, time_window=final.settings["time_window"],
                         max_iter=settings.max_iter, starts=settings.starts, initial=settings.initial,
                         time_budget=settings.time_budget,

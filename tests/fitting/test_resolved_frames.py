@@ -166,3 +166,18 @@ def test_rounds_shrink_the_window_refit_from_the_optimum_and_resume(slump, tmp_p
     assert min(seen) >= 1, seen
     # The wall time counts the optimizer time the killed run spent (kept in the logs) too.
     assert resumed.wall_time >= sum(r["wall_time"] for r in resumed.settings["resolved"]["rounds"] if "wall_time" in r)
+
+
+@pytest.mark.slow
+def test_time_budget_covers_the_rounds_and_the_result_says_it_stopped_them(slump, monkeypatch):
+    """A 1 us budget: round 0 stops at its start point (its first evaluation spends it), the measurement
+    there would shrink the window to 3 frames, but no time is left for round 1, so the result is round 0's
+    5-frame point with notes that the budget stopped both the start and the rounds."""
+    scripted(monkeypatch, [[0.2] * 5, [0.3, 0.4, 0.6, 1.4, 2.0]])
+    res = calibrate(read_silhouettes(slump), dataclasses.replace(SETTINGS, time_budget=1e-6))
+    rounds = res.settings["resolved"]["rounds"]
+    assert [r["resolved"] for r in rounds] == [5, 3] and rounds[-1]["stopped"] == "time budget"
+    assert res.settings["resolved"]["settled"] is False and res.data["frames_used"] == [1, 2, 3, 4, 5]
+    assert res.iterations == 0 and res.params["sigma_y"] == pytest.approx(rounds[0]["measured_at"]["sigma_y"])
+    assert "the time budget ended the rounds" in res.notes[0]
+    assert any(n.startswith("The time budget") for n in res.notes[1:])
