@@ -13,8 +13,9 @@ a rerun skips finished fits and resumes a killed one from its log. `--report` re
 its settings are checked against the defaults and the loss at the truth is computed here.
 `--floor-phase X` fits the files with a Coulomb floor with only that setting changed (`jaxfoam fit
 --floor-phase X`), into experiments/results/reference_fits_floor_phase_X/; the page gives their table
-below the defaults'. `--resolved-frames` fits every file with `resolved_frames` on, all else default, into
-experiments/results/reference_fits_resolved_frames/, and the page gives that table too.
+below the defaults'. `--resolved-frames` fits every file with `resolved_frames` on, all else default (or also
+`--floor-phase X`), into experiments/results/reference_fits_resolved_frames[_floor_phase_X]/, and the page gives
+those tables too.
 
 Usage: python -m experiments reference_fits [--only TEXT] [--report] [--from-fit FILE=FIT.json ...]
                                             [--floor-phase X] [--resolved-frames]
@@ -52,7 +53,8 @@ def phase_records(phase: float) -> Path:
 def records_of(settings: FitSettings) -> Path:
     """Where the fits with `settings` (the defaults, `--floor-phase` or `--resolved-frames`) are recorded."""
     if settings.resolved_frames:
-        return C.RESULTS / f"{NAME}_resolved_frames"
+        return C.RESULTS / (f"{NAME}_resolved_frames" + ("" if settings.floor_phase is None
+                                                          else f"_floor_phase_{settings.floor_phase:g}"))
     return RECORDS if settings.floor_phase is None else phase_records(settings.floor_phase)
 
 
@@ -243,7 +245,7 @@ def main(argv=None) -> int:
         settings = FitSettings(floor_phase=args.floor_phase).validate()
         files = [p for p in files if has_coulomb_floor(p)]
     if args.resolved_frames:
-        settings = FitSettings(resolved_frames=True).validate()
+        settings = dataclasses.replace(settings, resolved_frames=True).validate()
     where = records_of(settings)
     for path in files if not args.report else []:
         out = where / f"{path.stem}.json"
@@ -269,13 +271,19 @@ def main(argv=None) -> int:
                      f"grid's node rows placed so that the floor lies {phase:g} cells above the row below it "
                      f"(`jaxfoam fit --floor-phase {phase:g}`), every other setting default; records in "
                      f"experiments/results/{folder.name}/.\n\n" + compare(records, alt, f"floor phase {phase:g}") + "\n\n" + report(alt))
-    folder = records_of(FitSettings(resolved_frames=True))
-    alt = [json.loads(p.read_text()) for p in sorted(folder.glob("*.json"))] if folder.exists() else []
-    if alt:
-        body += ("\n\n## Resolved frames, `--resolved-frames`\n\nThe same fits with `resolved_frames` on (the frames "
+    for folder in sorted(C.RESULTS.glob(f"{NAME}_resolved_frames*")):
+        alt = [json.loads(p.read_text()) for p in sorted(folder.glob("*.json"))]
+        if not alt:
+            continue
+        phase = alt[0].get("floor_phase")
+        flags = "--resolved-frames" + ("" if phase is None else f" --floor-phase {phase:g}")
+        body += (f"\n\n## Resolved frames, `{flags}`\n\nThe same fits with `resolved_frames` on (the frames "
                  "before the first one whose silhouette moves more than a particle spacing between dx and "
-                 "dx / sqrt(2), chosen in rounds; docs/calibrate.md), every other setting default; records in "
-                 f"experiments/results/{folder.name}/. The loss ratio is over the frames each fit used.\n\n"
+                 "dx / sqrt(2), chosen in rounds; docs/calibrate.md)"
+                 + ("" if phase is None else f" and the floor {phase:g} cells above a node row")
+                 + f", every other setting default; records in experiments/results/{folder.name}/. The loss ratio "
+                 "is over the frames each fit used. Wall times of a record completed by resuming its round logs "
+                 "count the optimizer time of the earlier run from the logs.\n\n"
                  + windows(records, alt) + "\n\n" + compare(records, alt, "resolved frames") + "\n\n" + report(alt))
     C.write_md(NAME, False, "Default fits on the reference simulator's data", body)
     return 0
