@@ -27,7 +27,8 @@ losses (`fitting.silhouette`) and the generic optimizers (`fitting.optim`):
    Jacobian once more on a finer grid), into 95% intervals, returned as a `FitResult`.
 
 5. `fitting.joint`: one material fitted to several recordings (`calibrate([a, b, ...])`);
-   `fitting.design`: candidate recordings ranked by the intervals a fit of them would give (`design`).
+   `fitting.design`: candidate recordings ranked by the intervals a fit of them would give (`design`);
+   `fitting.horizon`: a fit of only the frames the grid resolves (`FitSettings(resolved_frames=True)`).
 
 The command lines are `jaxfoam fit data.h5 --out fit.json` (see `add_fit_parser`) and `jaxfoam design`.
 A fitter never reads the data's /truth: nothing here touches `Silhouettes.truth`.
@@ -38,7 +39,7 @@ from __future__ import annotations
 from jaxfoam import FIT_FIELDS as FIT_FIELDS
 
 from . import io as io, optim as optim, silhouette as silhouette, synth as synth, track as track
-from . import design as design
+from . import design as design, horizon as horizon
 from .check import (combine_intervals as combine_intervals, correlation_area as correlation_area,
                     discretization_error as discretization_error, fit_uncertainty as fit_uncertainty)
 from .design import DesignResult as DesignResult
@@ -59,7 +60,7 @@ from .track import track_video as track_video
 __all__ = [
     "Camera", "CalibrationError", "CalibrationProblem", "DEFAULT_BOUNDS", "DesignResult", "FIT_FIELDS", "FitResult", "FitSettings", "NUISANCE_FIELDS",
     "SilhouetteFormatError", "Silhouettes", "build_problem", "calibrate", "combine_intervals", "correlation_area",
-    "default_log_path", "design", "discretization_error", "fit_transform", "fit_uncertainty", "fitted_occupancy", "io",
+    "default_log_path", "design", "horizon", "discretization_error", "fit_transform", "fit_uncertainty", "fitted_occupancy", "io",
     "judge_reported_intervals", "make_starts", "optim", "plot_loss", "plot_overlay", "read_silhouettes",
     "silhouette", "silhouette_mismatch", "synth", "synthesize", "track", "track_video", "write_silhouettes",
 ]
