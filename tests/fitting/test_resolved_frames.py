@@ -181,3 +181,29 @@ def test_time_budget_covers_the_rounds_and_the_result_says_it_stopped_them(slump
     assert res.iterations == 0 and res.params["sigma_y"] == pytest.approx(rounds[0]["measured_at"]["sigma_y"])
     assert "the time budget ended the rounds" in res.notes[0]
     assert any(n.startswith("The time budget") for n in res.notes[1:])
+
+
+@pytest.mark.slow
+def test_command_line_fit_with_resolved_frames_writes_the_window_and_its_pictures(slump, tmp_path, monkeypatch):
+    """`jaxfoam fit --resolved-frames` (scripted measurements: 3 of 5 frames resolved at the optimum) writes
+    fit.json with the 3-frame window and round record, the round logs beside the fit log, and the overlay
+    of the frames fitted; a fresh run replaces old round logs."""
+    import json
+
+    from jaxfoam.cli import main
+
+    scripted(monkeypatch, [[0.2] * 5, [0.3, 0.4, 0.6, 1.4, 2.0]])
+    out = tmp_path / "fit.json"
+    stale = tmp_path / "fit.round2.fitlog.h5"
+    stale.write_bytes(b"old")
+    args = ["fit", str(slump), "--out", str(out), "--dx", "0.01", "--fix", "mu=150,eta=5,m=0.6", "--starts", "1",
+            "--max-iter", "8", "--dx-refit", "1", "--resolved-frames"]
+    assert main(args) == 0
+    fit = json.loads(out.read_text())
+    assert fit["settings"]["resolved_frames"] is True and fit["data"]["frames_used"] == [1, 2, 3]
+    assert fit["settings"]["time_window"] == [0.0, pytest.approx(0.21)]
+    assert [r["resolved"] for r in fit["settings"]["resolved"]["rounds"]] == [5, 3, 3]
+    assert len(fit["z"]) == 1 and len(fit["frame_iou"]) == 3
+    assert (tmp_path / "fit.round0.fitlog.h5").exists() and (tmp_path / "fit.round1.fitlog.h5").exists()
+    assert not stale.exists()
+    assert (tmp_path / "fit_overlay.png").stat().st_size > 1000
