@@ -3,7 +3,7 @@
 For every 2D file of `experiments/reference/data/` (the independent reference simulator's silhouettes), at
 the file's true parameters, per observed frame: the mean boundary displacement (`fitting.silhouette_mismatch`,
 in particle spacings of the fit grid) between the fit grid's silhouette and that of the discretization
-check's grid (dx / sqrt(2), as `FitSettings.dx_check` uses), beside the displacement between the fit grid's
+check's grid (dx / sqrt(2), as `FitSettings.dx_check` uses; `fitting.horizon.grid_displacement`), beside the displacement between the fit grid's
 silhouette and the data. Where the first exceeds FRAME_BOUNDARY_SPACINGS the grid does not resolve the frame
 (at these parameters), and the table gives the first such frame, the misfit before and from it, and the
 share of the loss at the truth that the frames from it hold. No data enter the grid-to-grid column: it is
@@ -23,7 +23,9 @@ import numpy as np
 
 from experiments import _common as C
 from fitting import FitSettings, build_problem, read_silhouettes, silhouette_mismatch
-from fitting.settings import DX_CHECK_RATIO, FIT_PPC, FRAME_BOUNDARY_SPACINGS
+from fitting.check import finer_settings
+from fitting.horizon import grid_displacement, resolved_count
+from fitting.settings import FIT_PPC, FRAME_BOUNDARY_SPACINGS
 from fitting.silhouette import particle_spacing
 from jaxfoam.guards import atomic_output
 
@@ -34,25 +36,24 @@ NAME = "grid_resolved_frames"
 def frame_rows(path: Path) -> dict:
     """Per-frame grid-to-grid and grid-to-data boundary displacements (particle spacings) and frame losses at the truth."""
     data = read_silhouettes(path)
-    coarse = build_problem(data, FitSettings(starts=1, dx_check=False))
-    fine = build_problem(data, FitSettings(dx=coarse.dx * DX_CHECK_RATIO, starts=1, dx_check=False))
+    settings = FitSettings(starts=1, dx_check=False)
+    coarse = build_problem(data, settings)
+    fine = build_problem(data, finer_settings(coarse, settings))
     truth = {n: float(data.truth[n]) for n in coarse.transform.names}
     spacing = particle_spacing(coarse.dx, FIT_PPC[coarse.scene.dim], coarse.scene.dim)
-    occ = np.asarray(coarse.render(truth))
-    occ_fine = np.nan_to_num(np.asarray(fine.render(truth)), nan=0.0)
-    _, grid = silhouette_mismatch(occ, occ_fine, coarse.weights, coarse.cfg.pixel_size)
-    _, misfit = silhouette_mismatch(occ, coarse.masks, coarse.weights, coarse.cfg.pixel_size)
+    grid = grid_displacement(coarse, fine, truth)
+    _, misfit = silhouette_mismatch(np.asarray(coarse.render(truth)), coarse.masks, coarse.weights,
+                                    coarse.cfg.pixel_size)
     r = np.asarray(coarse.residual(coarse.transform.to_unconstrained(truth)))
     loss = 0.5 * np.sum(r.reshape(len(coarse.observed), -1) ** 2, axis=1)
     return dict(file=path.name, dx=float(coarse.dx), spacing=float(spacing),
                 times=[float(data.times[i]) for i in coarse.frames],
-                grid=(grid / spacing).tolist(), misfit=(misfit / spacing).tolist(), loss=loss.tolist())
+                grid=grid.tolist(), misfit=(misfit / spacing).tolist(), loss=loss.tolist())
 
 
 def summary_row(rec: dict) -> list:
     grid, misfit, loss = (np.asarray(rec[k]) for k in ("grid", "misfit", "loss"))
-    bad = np.nonzero(grid > FRAME_BOUNDARY_SPACINGS)[0]
-    first = int(bad[0]) if len(bad) else len(grid)
+    first = resolved_count(grid, min_frames=0)
     before = float(np.mean(misfit[:first])) if first else float("nan")
     after = float(np.mean(misfit[first:])) if first < len(grid) else float("nan")
     share = float(np.sum(loss[first:]) / np.sum(loss))

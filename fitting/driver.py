@@ -74,6 +74,13 @@ def make_optimizer(name: str, broyden_steps: int = 0):
     raise CalibrationError(f"optimizer must be one of {OPTIMIZERS}, got {name!r}")
 
 
+def just_inside(value, lo: float, hi: float) -> float:
+    """`value` moved inside [lo, hi] by 1e-9 of its span where it lies on or beyond a finite bound (the
+    parameter transforms are open there)."""
+    pad = 1e-9 * (hi - lo) if math.isfinite(hi - lo) else 0.0
+    return min(max(float(value), lo + pad), hi - pad)
+
+
 def make_starts(transform: optim.ParameterTransform, settings: FitSettings):
     """Initial guesses (S, p) in fitted coordinates and their unit-cube design (S, p): the centre of the
     starting ranges (log-centre for log parameters), with `settings.initial`'s values in place of the
@@ -85,8 +92,7 @@ def make_starts(transform: optim.ParameterTransform, settings: FitSettings):
     for i, n in enumerate(transform.names):
         if settings.initial and n in settings.initial:
             # a value on a bound (a fit that ended there) starts just inside it: the transform is open there
-            lo, hi = settings.bounds_of(n)
-            first[i] = min(max(float(settings.initial[n]), lo + 1e-9 * (hi - lo)), hi - 1e-9 * (hi - lo))
+            first[i] = just_inside(settings.initial[n], *settings.bounds_of(n))
             unit0[i] = math.nan
     z = [np.asarray(transform.to_unconstrained(first))]
     unit = [unit0]
@@ -164,6 +170,11 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
     if not isinstance(data, Silhouettes):
         data = read_silhouettes(data)
     settings = (settings or FitSettings()).validate()
+    if start_z is not None:
+        start_z = np.asarray(start_z, np.float64)
+        if start_z.shape != (len(settings.fitted),) or not np.all(np.isfinite(start_z)):
+            raise CalibrationError(f"start_z must be {len(settings.fitted)} finite fitted coordinates "
+                                   f"({', '.join(settings.fitted)}), got {start_z.tolist()}")
     if settings.resolved_frames:
         from .horizon import calibrate_resolved
         return calibrate_resolved(data, settings, log=log, resume=resume, progress=progress, callback=callback)
@@ -187,10 +198,6 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
 
     starts, unit = make_starts(tr, settings)
     if start_z is not None:
-        start_z = np.asarray(start_z, np.float64)
-        if start_z.shape != (tr.size,) or not np.all(np.isfinite(start_z)):
-            raise CalibrationError(f"start_z must be {tr.size} finite fitted coordinates ({', '.join(names)}), "
-                                   f"got {start_z.tolist()}")
         starts[0] = start_z
     optimizer = make_optimizer(settings.optimizer, settings.broyden_steps)
     n_starts = len(starts)

@@ -11,7 +11,6 @@ rollouts over the whole record (the fit grid's and the finer grid's) and needs n
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
 from pathlib import Path
 from typing import Callable
@@ -36,15 +35,12 @@ def grid_displacement(coarse: CalibrationProblem, fine: CalibrationProblem, thet
     """Per observed frame of `coarse`, the mean boundary displacement between its silhouette at `theta`
     and that of `fine` (the same frames on a finer grid, same pixels), in particle spacings of `coarse`
     (`fitting.silhouette_mismatch`; a non-finite rollout's pixels count as outside)."""
-    from .driver import silhouette_mismatch
+    from .driver import just_inside, silhouette_mismatch
 
     tr = coarse.transform
     # an optimum on a bound (where the transform is open) is measured just inside it
-    theta = dict(theta)
-    for i, n in enumerate(tr.names):
-        lo, hi = float(tr.lower[i]), float(tr.upper[i])
-        pad = 1e-9 * (hi - lo) if math.isfinite(hi - lo) else 0.0
-        theta[n] = min(max(float(theta[n]), lo + pad), hi - pad)
+    theta = dict(theta, **{n: just_inside(theta[n], float(tr.lower[i]), float(tr.upper[i]))
+                           for i, n in enumerate(tr.names)})
     ppc = FIT_PPC[coarse.scene.dim] if coarse.settings.ppc is None else int(coarse.settings.ppc)
     spacing = particle_spacing(coarse.dx, ppc, coarse.scene.dim)
     occ = np.nan_to_num(np.asarray(coarse.render(theta), np.float64), nan=0.0)
@@ -98,8 +94,9 @@ def calibrate_resolved(data, settings: FitSettings, *, log=None, resume: bool = 
     settings = settings.validate()
     say = progress or (lambda msg: None)
     plain = dataclasses.replace(settings, resolved_frames=False)
-    coarse = build_problem(data, dataclasses.replace(plain, dx_check=False))
-    fine = build_problem(data, finer_settings(coarse, dataclasses.replace(plain, dx_check=False)))
+    unchecked = dataclasses.replace(plain, dx_check=False)
+    coarse = build_problem(data, unchecked)
+    fine = build_problem(data, finer_settings(coarse, unchecked))
     times = np.asarray(data.times, np.float64)[np.asarray(coarse.frames)]
     names = coarse.transform.names
     theta = coarse.params_of(make_starts(coarse.transform, settings)[0][0])
@@ -122,7 +119,7 @@ def calibrate_resolved(data, settings: FitSettings, *, log=None, resume: bool = 
             break
         window = window_of(times, count, settings.time_window)
         round_settings = dataclasses.replace(
-            plain, dx_check=False, time_window=window, time_budget=None if left is None else max(left, 1e-3),
+            unchecked, time_window=window, time_budget=None if left is None else max(left, 1e-3),
             **({} if last is None else dict(starts=1, initial={n: float(theta[n]) for n in names})))
         t = time.perf_counter()
         last = calibrate(data, round_settings, log=round_log(log, k), resume=resume and _exists(round_log(log, k)),
@@ -173,8 +170,7 @@ def _merged(final, last, rounds, coarse, fine, times, count, settings, wall):
         note += (f" The window had not settled ({why}): at the optimum {rounds[-1]['resolved']} frames are "
                  f"resolved; the window fitted is the last round's.")
     notes[:0] = [note] + [m for m in last.notes if m.startswith("The time budget")]
-    out_settings = dict(final.settings, resolved_frames=True, time_window=final.settings["time_window"],
-                        max_iter=settings.max_iter, starts=settings.starts, initial=settings.initial,
+    out_settings = dict(final.settings, resolved_frames=True, max_iter=settings.max_iter, starts=settings.starts, initial=settings.initial,
                         time_budget=settings.time_budget,
                         resolved=dict(rounds=rounds, frames=count, of=n, settled=bool(settled),
                                       user_time_window=None if settings.time_window is None
