@@ -386,11 +386,15 @@ def run_joint_fit(args, settings: FitSettings, paths) -> int:
     for path in paths:
         check_output(out, "--out", {"the data": path})
         check_output(log, "--log", {"the data": path, "--out": out})
-    joint = build_joint(paths, settings)
-    if not args.resume and log.exists():
-        log.unlink()
-    return _run_logged_fit(lambda say: calibrate_joint(None, settings, log=log, resume=args.resume, progress=say,
-                                                       joint=joint), log, out, rank)[0]
+    from .horizon import RESOLVED_MAX_ROUNDS, round_log
+    # with --resolved-frames the rounds build their own joint problems (a window per recording)
+    joint = None if settings.resolved_frames else build_joint(paths, settings)
+    if not args.resume:
+        for old in [log] + [round_log(log, k) for k in range(RESOLVED_MAX_ROUNDS)]:
+            if old.exists():
+                old.unlink()  # a fresh fit: old logs of this name are replaced
+    return _run_logged_fit(lambda say: calibrate_joint(None if joint is not None else paths, settings, log=log,
+                                                       resume=args.resume, progress=say, joint=joint), log, out, rank)[0]
 
 
 def _fit_outputs(args, settings: FitSettings):

@@ -7,6 +7,7 @@ window is measured at the start point, fitted (every start), measured again at t
 from it (one start) until the window stays put or RESOLVED_MAX_ROUNDS fits have run; the last window
 then gets the uncertainty and the discretization check at its optimum. The measurement is two forward
 rollouts over the whole record (the fit grid's and the finer grid's) and needs no data.
+`calibrate_joint_resolved` runs the same rounds for a joint fit, with a window per recording.
 """
 from __future__ import annotations
 
@@ -141,6 +142,100 @@ def calibrate_resolved(data, settings: FitSettings, *, log=None, resume: bool = 
                    time.perf_counter() - wall0 + extra)
 
 
+def _window_note(times, count: int, displacement, dx: float, dx_fine: float, who: str = "") -> str:
+    """The plain-language account of a window: the first `count` of the frames at `times` fitted, from the
+    grid displacement per frame measured at the point that chose it; who: "recording i: " or ""."""
+    n = len(times)
+    if count < n:
+        left = displacement[count:]
+        return (f"{who}Fitted the first {count} of {n} frames (t <= {times[count - 1]:.4g} s), those the dx = "
+                f"{dx:.4g} m grid resolves: its silhouettes and those of the dx = {dx_fine:.4g} m grid are "
+                f"more than {FRAME_BOUNDARY_SPACINGS:g} particle spacing apart on average from t = "
+                f"{times[count]:.4g} s on (up to {max(left):.3g} spacings), so what those frames show is placed by "
+                f"the grid as much as by the material. A finer --dx resolves more of them.")
+    return (f"{who}Every frame is resolved by the dx = {dx:.4g} m grid (its silhouettes and those of dx = "
+            f"{dx_fine:.4g} m within {FRAME_BOUNDARY_SPACINGS:g} particle spacing): all {n} were fitted.")
+
+
+def calibrate_joint_resolved(datas, settings: FitSettings, *, log=None, resume: bool = False,
+                             progress: Callable[[str], None] | None = None):
+    """`calibrate_joint` with every recording fitted on the frames its own grid resolves: the rounds of
+    `calibrate_resolved`, each recording's window measured at the joint point (the material's parameters
+    and that recording's nuisance ones); a round refits when any window moved. Returns a `JointFitResult`
+    whose `settings["resolved"]` records the rounds (per recording: displacement per frame, frames resolved,
+    window) and whose notes say per recording which frames were fitted. Round k's fit log is
+    `round_log(log, k)`, the final stage's (the uncertainty and the discretization check at the last
+    round's optimum, no iterations) is `log`; `resume` continues each from its log."""
+    from .joint import build_joint, calibrate_joint, joint_starts
+
+    wall0 = time.perf_counter()
+    settings = settings.validate()
+    say = progress or (lambda msg: None)
+    datas = list(datas)
+    plain = dataclasses.replace(settings, resolved_frames=False)
+    unchecked = dataclasses.replace(plain, dx_check=False)
+    whole = build_joint(datas, unchecked)  # every recording's whole record (density agreement checked here)
+    fine = [build_problem(pb.data, finer_settings(pb, unchecked)) for pb in whole.problems]
+    times = [np.asarray(pb.data.times, np.float64)[np.asarray(pb.frames)] for pb in whole.problems]
+    z = np.asarray(joint_starts(whole, settings)[0][0])
+    budget = settings.time_budget
+    rounds, fitted, last = [], None, None
+    for k in range(RESOLVED_MAX_ROUNDS + 1):
+        per = []
+        for i, (pb, fpb, zi) in enumerate(zip(whole.problems, fine, whole.split(z))):
+            shift = grid_displacement(pb, fpb, pb.params_of(zi))
+            count = resolved_count(shift)
+            per.append(dict(displacement=[float(v) for v in shift], resolved=int(count)))
+            say(f"resolved frames, recording {i}: at {'the start point' if last is None else f'the round {k - 1} optimum'} "
+                f"the dx = {pb.dx:.4g} m and dx = {fpb.dx:.4g} m silhouettes are within {FRAME_BOUNDARY_SPACINGS:g} "
+                f"particle spacing in the first {count} of {len(times[i])} frames (t <= {times[i][count - 1]:.4g} s)")
+        counts = [r["resolved"] for r in per]
+        rounds.append(dict(measured_at={n: float(v) for n, v in whole.params_of(z).items() if n in whole.names},
+                           recordings=per))
+        if counts == fitted or k == RESOLVED_MAX_ROUNDS:
+            break
+        left = None if budget is None else budget - (time.perf_counter() - wall0)
+        if left is not None and left <= 0 and last is not None:
+            rounds[-1]["stopped"] = "time budget"
+            break
+        windows = [window_of(t, c, settings.time_window) for t, c in zip(times, counts)]
+        round_settings = dataclasses.replace(unchecked, time_budget=None if left is None else max(left, 1e-3),
+                                             **({} if last is None else dict(starts=1)))
+        last = calibrate_joint(None, round_settings, log=round_log(log, k), resume=resume and _exists(round_log(log, k)),
+                               progress=say, joint=build_joint(datas, round_settings, windows=windows),
+                               start_z=None if last is None else last.z)
+        fitted, z = counts, np.asarray(last.z)
+        rounds[-1].update(windows=[None if w is None else list(w) for w in windows], loss=float(last.loss),
+                          wall_time=float(last.wall_time), params={n: float(last.params[n]) for n in whole.names},
+                          z=[float(v) for v in last.z])
+    windows = [window_of(t, c, settings.time_window) for t, c in zip(times, fitted)]
+    final_settings = dataclasses.replace(plain, starts=1, max_iter=0, time_budget=None)
+    final = calibrate_joint(None, final_settings, log=log, resume=resume and _exists(log), progress=say,
+                            joint=build_joint(datas, final_settings, windows=windows), start_z=last.z)
+    settled = [r["resolved"] for r in rounds[-1]["recordings"]] == fitted
+    chosen = [r for r in rounds if "loss" in r][-1]
+    notes = [_window_note(t, c, rec["displacement"], pb.dx, fpb.dx, who=f"recording {i}: ")
+             for i, (t, c, rec, pb, fpb) in enumerate(zip(times, fitted, chosen["recordings"], whole.problems, fine))]
+    if settled:
+        notes.append("Measured again at the joint optimum, every window stays.")
+    else:
+        why = ("the time budget ended the rounds" if rounds[-1].get("stopped") else f"after {RESOLVED_MAX_ROUNDS} rounds")
+        notes.append(f"The windows had not settled ({why}): at the joint optimum "
+                     f"{[r['resolved'] for r in rounds[-1]['recordings']]} frames are resolved; the windows fitted are "
+                     f"the last round's.")
+    notes += [m for m in last.notes if m.startswith("The time budget")]
+    out_settings = dict(final.settings, resolved_frames=True, max_iter=settings.max_iter, starts=settings.starts,
+                        time_budget=settings.time_budget,
+                        time_windows=[None if w is None else list(w) for w in windows],
+                        resolved=dict(rounds=rounds, frames=fitted, of=[len(t) for t in times], settled=bool(settled),
+                                      user_time_window=None if settings.time_window is None
+                                      else [float(v) for v in settings.time_window],
+                                      max_rounds=RESOLVED_MAX_ROUNDS, min_frames=RESOLVED_MIN_FRAMES,
+                                      limit_spacings=FRAME_BOUNDARY_SPACINGS, check_dx=[float(f.dx) for f in fine]))
+    return dataclasses.replace(final, settings=out_settings, notes=tuple(notes) + tuple(final.notes), runs=last.runs,
+                               wall_time=float(time.perf_counter() - wall0))
+
+
 def _exists(path) -> bool:
     return path is not None and Path(path).exists()
 
@@ -152,16 +247,7 @@ def _merged(final, last, rounds, coarse, fine, times, count, settings, wall):
     settled = rounds[-1]["resolved"] == count
     chosen = [r for r in rounds if "loss" in r][-1]  # the measurement that chose the window fitted last
     notes = list(final.notes)
-    if count < n:
-        left = chosen["displacement"][count:]
-        note = (f"Fitted the first {count} of {n} frames (t <= {times[count - 1]:.4g} s), those the dx = "
-                f"{coarse.dx:.4g} m grid resolves: its silhouettes and those of the dx = {fine.dx:.4g} m grid are "
-                f"more than {FRAME_BOUNDARY_SPACINGS:g} particle spacing apart on average from t = "
-                f"{times[count]:.4g} s on (up to {max(left):.3g} spacings), so what those frames show is placed by "
-                f"the grid as much as by the material. A finer --dx resolves more of them.")
-    else:
-        note = (f"Every frame is resolved by the dx = {coarse.dx:.4g} m grid (its silhouettes and those of dx = "
-                f"{fine.dx:.4g} m within {FRAME_BOUNDARY_SPACINGS:g} particle spacing): all {n} were fitted.")
+    note = _window_note(times, count, chosen["displacement"], coarse.dx, fine.dx)
     if settled:
         note += " Measured again at the optimum, the window stays."
     else:
@@ -183,5 +269,5 @@ def _merged(final, last, rounds, coarse, fine, times, count, settings, wall):
                                evaluations=last.evaluations, wall_time=float(wall))
 
 
-__all__ = ["RESOLVED_MAX_ROUNDS", "RESOLVED_MIN_FRAMES", "calibrate_resolved", "grid_displacement",
-           "resolved_count", "round_log", "window_of"]
+__all__ = ["RESOLVED_MAX_ROUNDS", "RESOLVED_MIN_FRAMES", "calibrate_joint_resolved", "calibrate_resolved",
+           "grid_displacement", "resolved_count", "round_log", "window_of"]

@@ -169,12 +169,17 @@ def information_shares(joint: JointProblem, parts) -> np.ndarray:
     return full / np.maximum(full.sum(axis=0, keepdims=True), np.finfo(float).tiny)
 
 
-def build_joint(datas, settings: FitSettings | None = None) -> JointProblem:
-    """Bind every recording to its simulator with the shared settings; the densities must agree."""
+def build_joint(datas, settings: FitSettings | None = None, windows=None) -> JointProblem:
+    """Bind every recording to its simulator with the shared settings; the densities must agree.
+
+    windows: per recording the time_window (s) of the frames it fits (None in the list: settings'), for
+    instance the windows `fitting.horizon.calibrate_joint_resolved` measures; None: settings' for all.
+    """
     settings = (settings or FitSettings()).validate()
     if settings.resolved_frames:
-        raise CalibrationError("resolved_frames=True is for a fit of one recording; a joint fit of several "
-                               "fits the frames of time_window in each (set resolved_frames False)")
+        raise CalibrationError("resolved_frames=True: the windows are measured by calibrate_joint (through "
+                               "fitting.horizon.calibrate_joint_resolved), not fixed by build_joint; pass "
+                               "resolved_frames=False with windows=[...] to bind measured windows")
     labels = [f"recording {i}" if isinstance(d, Silhouettes) else str(d) for i, d in enumerate(datas)]
     datas = [d if isinstance(d, Silhouettes) else read_silhouettes(d) for d in datas]
     if len(datas) < 2:
@@ -183,7 +188,13 @@ def build_joint(datas, settings: FitSettings | None = None) -> JointProblem:
     if max(rho) - min(rho) > DENSITY_TOLERANCE * max(rho):
         raise CalibrationError(f"density: the recordings' scenes give {rho} kg/m^3; one material has one density "
                                f"(set it with --fix rho=..., or fit the recordings separately)")
-    return JointProblem([build_problem(d, settings) for d in datas], settings, labels)
+    if windows is None:
+        windows = [None] * len(datas)
+    if len(windows) != len(datas):
+        raise CalibrationError(f"windows: one time window per recording ({len(datas)}), got {len(windows)}")
+    own = [settings if w is None else dataclasses.replace(settings, time_window=tuple(float(v) for v in w)).validate()
+           for w in windows]
+    return JointProblem([build_problem(d, s) for d, s in zip(datas, own)], settings, labels)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -206,10 +217,12 @@ class JointFitResult:
     correlation: list
     wall_time: float
     settings: dict
+    z: tuple = ()  # the optimum in the joint fitted coordinates (a later fit's start_z)
 
     def as_dict(self) -> dict:
         d = dataclasses.asdict(self)
         d["format"], d["version"] = "jaxfoam-joint-fit", 1
+        d["z"] = [float(v) for v in self.z]
         d["fitted"] = list(self.fitted)
         d["notes"] = list(self.notes)
         d["interval"] = {k: list(v) for k, v in self.interval.items()}
@@ -250,27 +263,13 @@ def joint_grid_error(joint: JointProblem, parts, shifts) -> np.ndarray:
     return check_error([np.linalg.lstsq(Jw.T @ Jw, moved, rcond=None)[0]])[0]
 
 
-def calibrate_joint(datas, settings: FitSettings | None = None, *, log=None, resume: bool = False,
-                    progress: Callable[[str], None] | None = None, joint: JointProblem | None = None) -> JointFitResult:
-    """Fit one material's parameters to several recordings (see the module docstring).
-
-    Args as `calibrate`; datas: `Silhouettes` or paths (at least 2). The fit log holds the multi-start's
-    runs (0 .. S-1) and the noise-scaled stage (run S), so a killed fit resumes.
-    """
-    wall0 = time.perf_counter()
-    settings = (settings or FitSettings()).validate()
-    say = progress or (lambda msg: None)
-    if joint is None:
-        joint = build_joint(datas, settings)
-    tr, names = joint.transform, joint.names
-    joint.set_scales(np.ones(len(joint.problems)))  # stage 1 weighs every recording alike
-    for i, pb in enumerate(joint.problems):
-        say(f"recording {i}: {pb.scene.kind} {pb.scene.dim}D, dx = {pb.dx:.4g} m, "
-            f"{int(np.sum(pb.sim.state0.active))} particles, {len(pb.frames)} frames")
-    say(f"joint fit of {', '.join(names)} with {settings.optimizer}, {settings.starts} start(s)")
+def joint_starts(joint: JointProblem, settings: FitSettings):
+    """The multi-start's starting points in joint fitted coordinates and their unit-cube design, (S, P) each:
+    the material's from `make_starts`; nuisance coordinates at each range's centre (or `initial`), the same
+    for every recording (their design entries NaN)."""
+    names, tr = joint.names, joint.transform
     joint_settings = dataclasses.replace(settings, fit_also=())
     base_starts, unit = make_starts(fit_transform(joint_settings), joint_settings)
-    # Nuisance coordinates start at each range's centre (or `initial`), the same for every recording.
     starts = []
     for zs in base_starts:
         full = np.zeros(len(names))
@@ -283,6 +282,46 @@ def calibrate_joint(datas, settings: FitSettings | None = None, *, log=None, res
         starts.append(full)
     starts = np.stack(starts)
     unit = np.concatenate([unit, np.full((len(starts), len(names) - unit.shape[1]), np.nan)], axis=1)
+    return starts, unit
+
+
+def calibrate_joint(datas, settings: FitSettings | None = None, *, log=None, resume: bool = False,
+                    progress: Callable[[str], None] | None = None, joint: JointProblem | None = None,
+                    start_z=None) -> JointFitResult:
+    """Fit one material's parameters to several recordings (see the module docstring).
+
+    Args as `calibrate`; datas: `Silhouettes` or paths (at least 2). The fit log holds the multi-start's
+    runs (0 .. S-1) and the noise-scaled stage (run S), so a killed fit resumes. joint: a prebuilt
+    `build_joint` (datas then unused). start_z: the first start in joint fitted coordinates (an earlier
+    result's `z`). With `settings.resolved_frames` each recording fits the frames its grid resolves
+    (`fitting.horizon.calibrate_joint_resolved`). max_iter=0 evaluates the start point only (the noise-scaled
+    stage then runs no iterations either).
+    """
+    settings = (settings or FitSettings()).validate()
+    if settings.resolved_frames:
+        if joint is not None:
+            raise CalibrationError("resolved_frames=True measures each recording's window and builds its own "
+                                   "joint problems: pass the recordings, not a prebuilt joint")
+        from .horizon import calibrate_joint_resolved
+        return calibrate_joint_resolved(datas, settings, log=log, resume=resume, progress=progress)
+    wall0 = time.perf_counter()
+    say = progress or (lambda msg: None)
+    if joint is None:
+        joint = build_joint(datas, settings)
+    if start_z is not None:
+        start_z = np.asarray(start_z, np.float64)
+        if start_z.shape != (len(joint.names),) or not np.all(np.isfinite(start_z)):
+            raise CalibrationError(f"start_z must be {len(joint.names)} finite joint fitted coordinates "
+                                   f"({', '.join(joint.names)}), got {start_z.tolist()}")
+    tr, names = joint.transform, joint.names
+    joint.set_scales(np.ones(len(joint.problems)))  # stage 1 weighs every recording alike
+    for i, pb in enumerate(joint.problems):
+        say(f"recording {i}: {pb.scene.kind} {pb.scene.dim}D, dx = {pb.dx:.4g} m, "
+            f"{int(np.sum(pb.sim.state0.active))} particles, {len(pb.frames)} frames")
+    say(f"joint fit of {', '.join(names)} with {settings.optimizer}, {settings.starts} start(s)")
+    starts, unit = joint_starts(joint, settings)
+    if start_z is not None:
+        starts[0] = start_z
     optimizer = make_optimizer(settings.optimizer, settings.broyden_steps)
     population = None
     if len(starts) > 1 and use_population(settings, joint):
@@ -327,7 +366,8 @@ def calibrate_joint(datas, settings: FitSettings | None = None, *, log=None, res
         spent = time.perf_counter() - wall0
         budget = {} if settings.time_budget is None else {"max_time": max(1e-9, settings.time_budget - spent)}
         stage2 = optim.least_squares(joint.residual_and_jacobian, z1, optimizer, with_jac=True,
-                                     residual=joint.residual, max_iterations=REWEIGHT_ITERATIONS, ftol=FTOL, xtol=XTOL,
+                                     residual=joint.residual,
+                                     max_iterations=REWEIGHT_ITERATIONS if settings.iterations else 0, ftol=FTOL, xtol=XTOL,
                                      callback=on_iteration("scaled"), log=fitlog, run=len(starts), resume=resume,
                                      seed=settings.seed, **budget)
     finally:
@@ -382,7 +422,8 @@ def calibrate_joint(datas, settings: FitSettings | None = None, *, log=None, res
                           identifiable=identifiable, notes=tuple(notes), loss=float(stage2.loss),
                           information_share={n: [float(v) for v in share[:, k]] for k, n in enumerate(names)},
                           recordings=recordings, runs=runs, correlation=np.asarray(unc.correlation).tolist(),
-                          wall_time=time.perf_counter() - wall0, settings=settings_out)
+                          wall_time=time.perf_counter() - wall0, settings=settings_out,
+                          z=tuple(float(v) for v in z))
 
 
 def _occupancy(pb: CalibrationProblem, r) -> np.ndarray:

@@ -16,15 +16,17 @@ from fitting import CalibrationError, FitSettings, build_problem, calibrate, rea
 from fitting.check import finer_settings
 from fitting.cli import add_fit_parser, settings_from_args
 from fitting.horizon import RESOLVED_MIN_FRAMES, grid_displacement, resolved_count, round_log, window_of
+from fitting.joint import build_joint, calibrate_joint
 from fitting.settings import FRAME_BOUNDARY_SPACINGS
 
-from helpers import scene as zoo_scene
+from helpers import edited, scene as zoo_scene
 
 SLUMP = zoo_scene("slump", initial_shape={"type": "box", "min": [-0.04, 0.0], "max": [0.04, 0.1]})
 TRUTH = {"mu": 150.0, "sigma_y": 25.0, "eta": 5.0, "m": 0.6}
 SETTINGS = FitSettings(dx=0.01, fixed={"mu": 150.0, "eta": 5.0, "m": 0.6}, starts=1, max_iter=8, dx_refit=1,
                        resolved_frames=True)
 TIMES = [0.06, 0.12, 0.18, 0.24, 0.3]  # the slump data's observed frames, s
+DROP = edited(zoo_scene("drop"), ("kappa",), 3000.0)  # the joint tests' second recording of the same foam
 
 
 @pytest.fixture(scope="module")
@@ -60,7 +62,7 @@ def test_round_logs_sit_beside_the_final_log():
     assert round_log(None, 0) is None
 
 
-def test_settings_and_cli_name_resolved_frames_and_joint_fits_refuse_it(slump):
+def test_settings_and_cli_name_resolved_frames_and_a_fixed_joint_problem_refuses_it(slump):
     import argparse
     ap = argparse.ArgumentParser()
     add_fit_parser(ap.add_subparsers())
@@ -69,8 +71,16 @@ def test_settings_and_cli_name_resolved_frames_and_joint_fits_refuse_it(slump):
     assert settings_from_args(ap.parse_args(["fit", "data.h5", "--out", "f.json"])).resolved_frames is False
     with pytest.raises(CalibrationError, match="resolved_frames must be True or False, got 'yes'"):
         FitSettings(resolved_frames="yes").validate()
-    with pytest.raises(CalibrationError, match="resolved_frames=True is for a fit of one recording"):
-        calibrate([slump, slump], SETTINGS)
+    # a joint fit measures its windows itself: a prebuilt joint problem (fixed windows) cannot take them
+    with pytest.raises(CalibrationError, match="resolved_frames=True: the windows are measured by calibrate_joint"):
+        build_joint([slump, slump], SETTINGS)
+    joint = build_joint([slump, slump], dataclasses.replace(SETTINGS, resolved_frames=False))
+    with pytest.raises(CalibrationError, match="pass the recordings, not a prebuilt joint"):
+        calibrate_joint(None, SETTINGS, joint=joint)
+    with pytest.raises(CalibrationError, match="windows: one time window per recording \\(2\\), got 1"):
+        build_joint([slump, slump], dataclasses.replace(SETTINGS, resolved_frames=False), windows=[None])
+    with pytest.raises(CalibrationError, match="start_z must be 1 finite joint fitted coordinates"):
+        calibrate_joint(None, dataclasses.replace(SETTINGS, resolved_frames=False), joint=joint, start_z=[np.nan])
 
 
 @pytest.mark.slow
@@ -91,6 +101,14 @@ def test_grid_displacement_measures_refinement_in_particle_spacings(slump):
     lo, hi = coarse.transform.lower[0], coarse.transform.upper[0]
     assert np.all(np.isfinite(grid_displacement(coarse, fine, {"sigma_y": float(hi)})))
     assert np.all(np.isfinite(grid_displacement(coarse, fine, {"sigma_y": float(lo)})))
+
+
+@pytest.fixture(scope="module")
+def drop(tmp_path_factory):
+    data = synthesize(DROP, TRUTH, dx=0.005, frames=5, duration=0.3, noise=0.01, seed=2)
+    path = tmp_path_factory.mktemp("resolved_drop") / "drop.h5"
+    data.write(path)
+    return path
 
 
 class Interrupt(Exception):
@@ -207,3 +225,67 @@ def test_command_line_fit_with_resolved_frames_writes_the_window_and_its_picture
     assert (tmp_path / "fit.round0.fitlog.h5").exists() and (tmp_path / "fit.round1.fitlog.h5").exists()
     assert not stale.exists()
     assert (tmp_path / "fit_overlay.png").stat().st_size > 1000
+
+
+@pytest.mark.slow
+def test_joint_fit_gets_a_window_per_recording_refits_and_resumes(slump, drop, tmp_path, monkeypatch):
+    """A joint fit of the slump (5 frames) and a drop (4 frames) with scripted measurements: every frame of
+    both resolved at the start, then 3 of the slump's and all of the drop's at each optimum. Round 0 fits
+    all frames, round 1 refits the slump's first 3 with the drop's 4 from round 0's optimum, the third
+    measurement agrees; the result is round 1's optimum (equal to a joint fit with those windows started
+    there) with its discretization check, the windows and per-recording notes; a fit killed in round 1
+    resumes to the same result; `jaxfoam fit a.h5 b.h5 --resolved-frames` writes the windows."""
+    import json
+
+    from jaxfoam.cli import main
+
+    answers = [[0.2] * 5, [0.1] * 4, [0.3, 0.4, 0.6, 1.4, 2.0], [0.2, 0.3, 0.5, 0.9],
+               [0.3, 0.4, 0.7, 1.2, 1.9], [0.2, 0.3, 0.5, 0.8]]
+    calls = scripted(monkeypatch, answers)
+    both = [slump, drop]
+    ref = calibrate(both, SETTINGS, log=tmp_path / "ref.fitlog.h5")
+    assert len(calls) == 6
+    res = ref.settings["resolved"]
+    assert [[r["resolved"] for r in k["recordings"]] for k in res["rounds"]] == [[5, 4], [3, 4], [3, 4]]
+    assert res["settled"] is True and res["frames"] == [3, 4] and res["of"] == [5, 4]
+    assert ref.settings["time_windows"] == [[0.0, pytest.approx(0.21)], None]
+    # round 1 measured recording i at round 0's optimum
+    assert calls[2]["sigma_y"] == pytest.approx(res["rounds"][0]["params"]["sigma_y"], rel=1e-12)
+    np.testing.assert_array_equal(ref.z, res["rounds"][1]["z"])
+    assert ref.notes[0].startswith("recording 0: Fitted the first 3 of 5 frames (t <= 0.18 s)")
+    assert ref.notes[1].startswith("recording 1: Every frame is resolved") and "every window stays" in ref.notes[2]
+    assert ref.numerical_error["sigma_y"] > 0  # the final stage's discretization check ran on both windows
+    assert [len(r["frame_iou"]) for r in ref.recordings] == [3, 4]
+
+    direct = calibrate_joint(None, dataclasses.replace(SETTINGS, resolved_frames=False, dx_check=False, starts=1),
+                             joint=build_joint(both, dataclasses.replace(SETTINGS, resolved_frames=False),
+                                               windows=[(0.0, 0.21), None]),
+                             start_z=res["rounds"][0]["z"])
+    assert ref.params["sigma_y"] == pytest.approx(direct.params["sigma_y"], rel=1e-9)
+
+    calls.clear()
+    log = tmp_path / "killed.fitlog.h5"
+
+    def kill(msg):
+        if len(calls) == 4 and "iter   1" in msg:
+            raise Interrupt
+
+    with pytest.raises(Interrupt):
+        calibrate(both, SETTINGS, log=log, progress=kill)
+    calls.clear()
+    seen = []
+    resumed = calibrate(both, SETTINGS, log=log, resume=True, progress=seen.append)
+    assert resumed.params["sigma_y"] == pytest.approx(ref.params["sigma_y"], rel=1e-9)
+    # round 0 was read back (no iteration reported before round 1's measurement)
+    first_iter = next(i for i, m in enumerate(seen) if "] iter " in m)
+    assert sum("resolved frames" in m for m in seen[:first_iter]) == 4, seen[:first_iter]
+
+    calls.clear()
+    out = tmp_path / "joint.json"
+    assert main(["fit", str(slump), str(drop), "--out", str(out), "--dx", "0.01", "--fix", "mu=150,eta=5,m=0.6",
+                 "--starts", "1", "--max-iter", "8", "--dx-refit", "1", "--resolved-frames"]) == 0
+    fit = json.loads(out.read_text())
+    assert fit["format"] == "jaxfoam-joint-fit" and fit["settings"]["resolved_frames"] is True
+    assert fit["settings"]["time_windows"] == [[0.0, pytest.approx(0.21)], None]
+    assert fit["params"]["sigma_y"] == pytest.approx(ref.params["sigma_y"], rel=1e-9) and len(fit["z"]) == 1
+    assert (tmp_path / "joint.round0.fitlog.h5").exists() and (tmp_path / "joint.round1.fitlog.h5").exists()
