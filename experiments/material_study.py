@@ -79,7 +79,11 @@ class Grid:
 GRIDS = {"1cm": Grid("", SETTINGS, NAME),
          "default": Grid("_default", dataclasses.replace(SETTINGS, dx=None), NAME + "_default"),
          # a design source only (--design-grid): the 1 cm design from the 1 cm joint fit, ranked with dx_check
-         "1cm_check": Grid("_check", SETTINGS, NAME + "_check", design_check=True, guess_tag="")}
+         "1cm_check": Grid("_check", SETTINGS, NAME + "_check", design_check=True, guess_tag=""),
+         # every fit on the frames its grid resolves (a window per recording in the joint fits)
+         "1cm_resolved": Grid("_resolved", dataclasses.replace(SETTINGS, resolved_frames=True), NAME + "_resolved"),
+         "default_resolved": Grid("_default_resolved", dataclasses.replace(SETTINGS, dx=None, resolved_frames=True),
+                                  NAME + "_default_resolved")}
 AMPLITUDES = (0.005, 0.01, 0.02, 0.03)   # m
 FREQUENCIES = (1.0, 2.0, 3.0, 5.0, 8.0)  # Hz
 DESIGN_DURATION, DESIGN_FPS, DESIGN_POINTS = 1.0, 15.0, 3
@@ -108,6 +112,8 @@ def _fit_record(res, wall: float, files) -> dict:
     return dict(files=[str(Path(f).name) for f in files], params=res.params, interval=dict(res.interval),
                 interval_statistical=dict(res.interval_statistical), identifiable=res.identifiable,
                 notes=list(res.notes), loss=res.loss, wall=wall, measured=C.machine_line(),
+                **({"resolved_frames": res.settings["resolved"]["frames"], "of": res.settings["resolved"]["of"]}
+                   if res.settings.get("resolved") else {}),
                 **({"information_share": res.information_share,
                     "recordings": [{q: r[q] for q in ("name", "scale", "loss", "reproduced")} for r in res.recordings]}
                    if hasattr(res, "information_share") else {}))
@@ -260,7 +266,10 @@ def report(materials, grid: Grid = GRIDS["1cm"]) -> Path:
     st = grid.settings
     body = [f"Fit settings: dx {f'{st.dx} m' if st.dx else 'the fitter default (64 cells across the domain)'}, "
             f"{st.starts} starts of up to {st.max_iter} LM iterations, "
-            f"the discretization check on. Tolerance (design's): {TOLERANCE} (relative; m absolute).\n"]
+            f"the discretization check on"
+            + (", every fit on the frames its grid resolves (`--resolved-frames`; a window per recording in the "
+               "joint fits)" if st.resolved_frames else "")
+            + f". Tolerance (design's): {TOLERANCE} (relative; m absolute).\n"]
     goals = {"joint2x": [], "designed": [], "pred": [], "pred_misfit": []}
     for k in materials:
         truth = G.materials()[k]
@@ -349,6 +358,9 @@ def report(materials, grid: Grid = GRIDS["1cm"]) -> Path:
             body.append(C.md_table(["param", "predicted (guess)", "predicted (worst point)", "predicted (truth)",
                                     "achieved", "achieved / predicted (truth)", "misfit 'with': predicted (guess)",
                                     "(worst point)", "achieved / predicted (worst)"], rows) + "\n")
+        if st.resolved_frames:
+            body.append("Frames fitted (resolved of observed): " + "; ".join(
+                f"{lab} {r['resolved_frames']} of {r['of']}" for lab, r in cols if "resolved_frames" in r) + ".\n")
         walls = [f"{lab} {r['wall'] / 60:.1f} min" for lab, r in cols]
         body.append("Wall times: " + ", ".join(walls) + ".\n")
     summary = ["## Goals (issue: joint fits and experiment design)\n"]
@@ -375,7 +387,7 @@ def report(materials, grid: Grid = GRIDS["1cm"]) -> Path:
                        f"{inside} of {len(goals['pred_reported'])} parameter-cases.")
     text = "\n".join(summary) + "\n\n" + "\n".join(body)
     return C.write_md(grid.page, False, "One foam in three recordings: single, joint and designed fits on reference data",
-                      text, command=NAME + ("" if grid.tag == "" else " --grid default")
+                      text, command=NAME + ("" if grid.tag == "" else " --grid " + next(n for n, g in GRIDS.items() if g.tag == grid.tag))
                       + ("" if grid.design_from is None else f" --design-grid {grid.design_from}"))
 
 
