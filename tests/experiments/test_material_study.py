@@ -94,3 +94,19 @@ def test_a_grid_fits_another_grids_design_under_its_own_record(tmp_path, monkeyp
     page = S.report([0], grid).read_text()
     assert "on the 1cm grid" in page and "all four parameters within tolerance with the truth inside: 1 of 1" in page
     assert "--design-grid 1cm" in page
+
+
+def test_resolved_grid_page_lists_the_frames_fitted_and_its_command(tmp_path, monkeypatch):
+    """On the resolved-frames grids each column says how many of its frames the fit used (joint: per
+    recording), and the page's command names its grid."""
+    monkeypatch.setattr(S, "RECORDS", tmp_path / "records")
+    monkeypatch.setattr(C, "RESULTS", tmp_path)
+    grid = S.GRIDS["1cm_resolved"]
+    truth = G.materials()[0]
+    for kind, n in zip(S.KINDS, (16, 12, 14)):
+        S._save(S.record_path(0, "single", kind, grid=grid), dict(_fit(truth, 0.5), resolved_frames=n - 2, of=n))
+    S._save(S.record_path(0, "joint", grid=grid), dict(_fit(truth, 0.25), resolved_frames=[13, 12, 14], of=[16, 12, 14]))
+    page = S.report([0], grid).read_text()
+    assert ("Frames fitted (resolved of observed): hanging_plate alone 14 of 16; drop alone 10 of 12; squeeze alone "
+            "12 of 14; joint (h + d + s) [13, 12, 14] of [16, 12, 14].") in page
+    assert "material_study --grid 1cm_resolved" in page and "every fit on the frames its grid resolves" in page
