@@ -314,6 +314,11 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
                 [float(data.times[i]) for i in problem.frames], change, problem.dx)
             if uneven:
                 notes.append(uneven)
+        if best.reason == optim.Reason.MAX_ITERATIONS:
+            more = iteration_budget_note(best.history.loss, [tr.to_physical(x) for x in best.history.x], tr,
+                                         best_index + 1, settings.iterations)
+            if more:
+                notes.append(more)
         split = separation_note([float(data.times[i]) for i in problem.frames], problem.masks, problem.weights)
         if split:
             notes.append(split)
@@ -368,6 +373,53 @@ def calibrate(data, settings: FitSettings | None = None, *, log=None, resume: bo
                      wall_time=before + optimization_wall + time.perf_counter() - after0,
                      uncertainty=unc, residual=np.asarray(r), z=np.asarray(z_best, np.float64))
     return _with_goodness_of_fit(problem, result)
+
+
+# The unconverged-start note looks at the best start's last UNCONVERGED_TAIL iterations; a parameter whose
+# position in its bounds (log span for log parameters) fell monotonically there to below NEAR_BOUND is
+# named as heading for that bound.
+UNCONVERGED_TAIL = 5
+NEAR_BOUND = 0.1
+
+
+def _bound_position(kind: str, lo: float, hi: float, values) -> np.ndarray | None:
+    """Positions (0 at lo, 1 at hi) of physical `values` between two finite bounds, in log for log kinds;
+    None for a kind without two bounds."""
+    v = np.asarray(values, np.float64)
+    if kind == "bounded":
+        return (v - lo) / (hi - lo)
+    if kind == "log_bounded":
+        return np.log(v / lo) / math.log(hi / lo)
+    return None
+
+
+def iteration_budget_note(history_loss, history_theta, transform, start: int, budget: int) -> str | None:
+    """A note for a best start that stopped at its iteration budget (`budget` iterations): how much its loss
+    fell over its last UNCONVERGED_TAIL iterations and which parameters were heading for a bound there.
+    history_loss: (K,) losses of its iterations; history_theta: (K, p) physical values of the fitted
+    parameters (`transform` order); start: its 1-based number. None when the history is too short."""
+    loss = np.asarray(history_loss, np.float64)
+    theta = np.asarray(history_theta, np.float64)
+    k = min(UNCONVERGED_TAIL, len(loss) - 1)
+    if k < 1:
+        return None
+    drop = (loss[-k - 1] - loss[-1]) / loss[-k - 1] if loss[-k - 1] > 0 else 0.0
+    heading = []
+    for i, (name, kind, lo, hi) in enumerate(zip(transform.names, transform.kinds, transform.lower, transform.upper)):
+        u = _bound_position(kind, float(lo), float(hi), theta[-k - 1:, i])
+        if u is None:
+            continue
+        steps = np.diff(u)
+        if np.all(steps < 0) and u[-1] < NEAR_BOUND:
+            heading.append(f"{name} ({theta[-1, i]:.4g}) towards its lower bound {float(lo):g}")
+        elif np.all(steps > 0) and u[-1] > 1.0 - NEAR_BOUND:
+            heading.append(f"{name} ({theta[-1, i]:.4g}) towards its upper bound {float(hi):g}")
+    note = (f"The best start ({start}) stopped at its iteration budget ({budget}) before converging: its loss fell "
+            f"{100 * drop:.2g}% over its last {k} iterations")
+    note += (", with " + " and ".join(heading) + "; the optimum lies further that way, where the data do not "
+             "bound those parameters" if heading else "")
+    return note + (". More iterations continue the fit from its log: the same command with --max-iter "
+                   f"{2 * budget} --resume.")
 
 
 def silhouette_mismatch(occupancy, masks, weights, pixel_size: float) -> tuple[np.ndarray, np.ndarray]:

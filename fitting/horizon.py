@@ -255,7 +255,7 @@ def _merged(final, last, rounds, coarse, fine, times, count, settings, wall):
                f"after {RESOLVED_MAX_ROUNDS} rounds")
         note += (f" The window had not settled ({why}): at the optimum {rounds[-1]['resolved']} frames are "
                  f"resolved; the window fitted is the last round's.")
-    notes[:0] = [note] + [m for m in last.notes if m.startswith("The time budget")]
+    notes[:0] = [note] + [m for m in last.notes if m.startswith(("The time budget", "The best start"))]
     out_settings = dict(final.settings, resolved_frames=True, max_iter=settings.max_iter, starts=settings.starts, initial=settings.initial,
                         time_budget=settings.time_budget,
                         resolved=dict(rounds=rounds, frames=count, of=n, settled=bool(settled),
