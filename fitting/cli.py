@@ -393,8 +393,8 @@ def run_joint_fit(args, settings: FitSettings, paths) -> int:
         for old in [log] + [round_log(log, k) for k in range(RESOLVED_MAX_ROUNDS)]:
             if old.exists():
                 old.unlink()  # a fresh fit: old logs of this name are replaced
-    return _run_logged_fit(lambda say: calibrate_joint(None if joint is not None else paths, settings, log=log,
-                                                       resume=args.resume, progress=say, joint=joint), log, out, rank)[0]
+    return _run_logged_fit(lambda say: calibrate_joint(paths, settings, log=log, resume=args.resume, progress=say,
+                                                       joint=joint), log, out, rank)[0]
 
 
 def _fit_outputs(args, settings: FitSettings):

@@ -80,6 +80,28 @@ def round_log(log, k: int) -> Path | None:
     return log.with_name(f"{stem}.round{k}{suffix}")
 
 
+# The notes of the last round that the result keeps: what the round's budgets stopped.
+KEPT_ROUND_NOTES = ("The time budget", "The best start")
+
+
+def _measured(at: str, count: int, times, dx: float, dx_fine: float, who: str = "") -> str:
+    """The progress line of one window measurement; who: ", recording i" or ""."""
+    return (f"resolved frames{who}: at {at} the dx = {dx:.4g} m and dx = {dx_fine:.4g} m silhouettes are within "
+            f"{FRAME_BOUNDARY_SPACINGS:g} particle spacing in the first {count} of {len(times)} frames "
+            f"(t <= {times[count - 1]:.4g} s)")
+
+
+def _time_left(budget, wall0: float):
+    """Seconds of the time budget left (None: no budget)."""
+    return None if budget is None else budget - (time.perf_counter() - wall0)
+
+
+def _rules(settings: FitSettings) -> dict:
+    """The window rule's settings, as `settings["resolved"]` records them beside the rounds."""
+    return dict(user_time_window=None if settings.time_window is None else [float(v) for v in settings.time_window],
+                max_rounds=RESOLVED_MAX_ROUNDS, min_frames=RESOLVED_MIN_FRAMES, limit_spacings=FRAME_BOUNDARY_SPACINGS)
+
+
 def calibrate_resolved(data, settings: FitSettings, *, log=None, resume: bool = False,
                        progress: Callable[[str], None] | None = None, callback=None):
     """`calibrate` on the frames the fit grid resolves (see the module docstring); returns a `FitResult`
@@ -107,14 +129,12 @@ def calibrate_resolved(data, settings: FitSettings, *, log=None, resume: bool = 
         shift = grid_displacement(coarse, fine, theta)
         count = resolved_count(shift)
         at = "the start point" if last is None else f"the round {k - 1} optimum"
-        say(f"resolved frames: at {at} the dx = {coarse.dx:.4g} m and dx = {fine.dx:.4g} m silhouettes are "
-            f"within {FRAME_BOUNDARY_SPACINGS:g} particle spacing in the first {count} of {len(times)} frames "
-            f"(t <= {times[count - 1]:.4g} s)")
+        say(_measured(at, count, times, coarse.dx, fine.dx))
         rounds.append(dict(measured_at={n: float(theta[n]) for n in names}, displacement=[float(v) for v in shift],
                            resolved=int(count)))
         if count == fitted_count or k == RESOLVED_MAX_ROUNDS:
             break
-        left = None if budget is None else budget - (time.perf_counter() - wall0)
+        left = _time_left(budget, wall0)
         if left is not None and left <= 0 and last is not None:
             rounds[-1]["stopped"] = "time budget"
             break
@@ -182,19 +202,18 @@ def calibrate_joint_resolved(datas, settings: FitSettings, *, log=None, resume: 
     rounds, fitted, last = [], None, None
     for k in range(RESOLVED_MAX_ROUNDS + 1):
         per = []
+        at = "the start point" if last is None else f"the round {k - 1} optimum"
         for i, (pb, fpb, zi) in enumerate(zip(whole.problems, fine, whole.split(z))):
             shift = grid_displacement(pb, fpb, pb.params_of(zi))
             count = resolved_count(shift)
             per.append(dict(displacement=[float(v) for v in shift], resolved=int(count)))
-            say(f"resolved frames, recording {i}: at {'the start point' if last is None else f'the round {k - 1} optimum'} "
-                f"the dx = {pb.dx:.4g} m and dx = {fpb.dx:.4g} m silhouettes are within {FRAME_BOUNDARY_SPACINGS:g} "
-                f"particle spacing in the first {count} of {len(times[i])} frames (t <= {times[i][count - 1]:.4g} s)")
+            say(_measured(at, count, times[i], pb.dx, fpb.dx, who=f", recording {i}"))
         counts = [r["resolved"] for r in per]
         rounds.append(dict(measured_at={n: float(v) for n, v in whole.params_of(z).items() if n in whole.names},
                            recordings=per))
         if counts == fitted or k == RESOLVED_MAX_ROUNDS:
             break
-        left = None if budget is None else budget - (time.perf_counter() - wall0)
+        left = _time_left(budget, wall0)
         if left is not None and left <= 0 and last is not None:
             rounds[-1]["stopped"] = "time budget"
             break
@@ -223,15 +242,12 @@ def calibrate_joint_resolved(datas, settings: FitSettings, *, log=None, resume: 
         notes.append(f"The windows had not settled ({why}): at the joint optimum "
                      f"{[r['resolved'] for r in rounds[-1]['recordings']]} frames are resolved; the windows fitted are "
                      f"the last round's.")
-    notes += [m for m in last.notes if m.startswith("The time budget")]
+    notes += [m for m in last.notes if m.startswith(KEPT_ROUND_NOTES)]
     out_settings = dict(final.settings, resolved_frames=True, max_iter=settings.max_iter, starts=settings.starts,
                         time_budget=settings.time_budget,
                         time_windows=[None if w is None else list(w) for w in windows],
                         resolved=dict(rounds=rounds, frames=fitted, of=[len(t) for t in times], settled=bool(settled),
-                                      user_time_window=None if settings.time_window is None
-                                      else [float(v) for v in settings.time_window],
-                                      max_rounds=RESOLVED_MAX_ROUNDS, min_frames=RESOLVED_MIN_FRAMES,
-                                      limit_spacings=FRAME_BOUNDARY_SPACINGS, check_dx=[float(f.dx) for f in fine]))
+                                      **_rules(settings), check_dx=[float(f.dx) for f in fine]))
     return dataclasses.replace(final, settings=out_settings, notes=tuple(notes) + tuple(final.notes), runs=last.runs,
                                wall_time=float(time.perf_counter() - wall0))
 
@@ -255,14 +271,11 @@ def _merged(final, last, rounds, coarse, fine, times, count, settings, wall):
                f"after {RESOLVED_MAX_ROUNDS} rounds")
         note += (f" The window had not settled ({why}): at the optimum {rounds[-1]['resolved']} frames are "
                  f"resolved; the window fitted is the last round's.")
-    notes[:0] = [note] + [m for m in last.notes if m.startswith(("The time budget", "The best start"))]
+    notes[:0] = [note] + [m for m in last.notes if m.startswith(KEPT_ROUND_NOTES)]
     out_settings = dict(final.settings, resolved_frames=True, max_iter=settings.max_iter, starts=settings.starts, initial=settings.initial,
                         time_budget=settings.time_budget,
-                        resolved=dict(rounds=rounds, frames=count, of=n, settled=bool(settled),
-                                      user_time_window=None if settings.time_window is None
-                                      else [float(v) for v in settings.time_window],
-                                      max_rounds=RESOLVED_MAX_ROUNDS, min_frames=RESOLVED_MIN_FRAMES,
-                                      limit_spacings=FRAME_BOUNDARY_SPACINGS, check_dx=float(fine.dx)))
+                        resolved=dict(rounds=rounds, frames=count, of=n, settled=bool(settled), **_rules(settings),
+                                      check_dx=float(fine.dx)))
     return dataclasses.replace(final, settings=out_settings, notes=tuple(notes), loss_history=last.loss_history,
                                time_history=last.time_history, runs=last.runs, best_run=last.best_run,
                                best_iteration=last.best_iteration, reason=last.reason, iterations=last.iterations,

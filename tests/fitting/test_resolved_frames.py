@@ -29,12 +29,16 @@ TIMES = [0.06, 0.12, 0.18, 0.24, 0.3]  # the slump data's observed frames, s
 DROP = edited(zoo_scene("drop"), ("kappa",), 3000.0)  # the joint tests' second recording of the same foam
 
 
+def _recorded(tmp_path_factory, spec, name: str, frames: int, noise: float, seed: int):
+    """The path of synthetic data of `spec` at TRUTH (dx 5 mm, 0.3 s)."""
+    path = tmp_path_factory.mktemp(name) / f"{name}.h5"
+    synthesize(spec, TRUTH, dx=0.005, frames=frames, duration=0.3, noise=noise, seed=seed).write(path)
+    return path
+
+
 @pytest.fixture(scope="module")
 def slump(tmp_path_factory):
-    data = synthesize(SLUMP, TRUTH, dx=0.005, frames=6, duration=0.3, noise=0.02, seed=1)
-    path = tmp_path_factory.mktemp("resolved") / "slump.h5"
-    data.write(path)
-    return path
+    return _recorded(tmp_path_factory, SLUMP, "slump", frames=6, noise=0.02, seed=1)
 
 
 def test_resolved_count_stops_before_the_first_unresolved_frame_and_keeps_a_minimum():
@@ -105,10 +109,7 @@ def test_grid_displacement_measures_refinement_in_particle_spacings(slump):
 
 @pytest.fixture(scope="module")
 def drop(tmp_path_factory):
-    data = synthesize(DROP, TRUTH, dx=0.005, frames=5, duration=0.3, noise=0.01, seed=2)
-    path = tmp_path_factory.mktemp("resolved_drop") / "drop.h5"
-    data.write(path)
-    return path
+    return _recorded(tmp_path_factory, DROP, "drop", frames=5, noise=0.01, seed=2)
 
 
 class Interrupt(Exception):
